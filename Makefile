@@ -1,0 +1,42 @@
+# Quick start: `make demo` (install + the main training run) and `make test` (install + lint + tests).
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+DEMO_CONFIG ?= configs/demo_small.yaml
+DEMO_OUT ?= runs/demo
+
+.PHONY: demo test lint install install-dev clean
+
+$(VENV)/bin/python:
+	$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "Python 3.11+ needed"'
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+
+$(VENV)/.installed: $(VENV)/bin/python pyproject.toml
+	$(PY) -m pip install -q -e .
+	touch $@
+
+$(VENV)/.installed-dev: $(VENV)/bin/python pyproject.toml
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $@ $(VENV)/.installed
+
+install: $(VENV)/.installed
+install-dev: $(VENV)/.installed-dev
+
+demo: $(VENV)/.installed
+	@if [ -f $(DEMO_OUT)/config.yaml ]; then \
+	  $(VENV)/bin/evojax-motion train $(DEMO_CONFIG) --out $(DEMO_OUT) --resume; \
+	else \
+	  $(VENV)/bin/evojax-motion train $(DEMO_CONFIG) --out $(DEMO_OUT); \
+	fi
+
+lint: $(VENV)/.installed-dev
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
+
+test: lint
+	$(VENV)/bin/pytest -q
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,91 @@
+"""The ``evojax-motion`` command line: one subcommand per stage of the pipeline.
+
+User mistakes (``UserError``, bad arguments) print one line ``error: ...`` on stderr and exit 2;
+nothing is written in that case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from evojax_motion.errors import UserError
+
+EXIT_USER_ERROR = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``error: ...``) and exit status 2."""
+
+    def error(self, message):
+        raise UserError(f"{self.prog}: {message}")
+
+
+def _cmd_demos(args) -> int:
+    from evojax_motion.config import load_config
+    from evojax_motion.workflow import build_demonstrations, print_demo_summary
+
+    cfg = load_config(args.config, args.set)
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise UserError(f"{out}: already exists (pass --force to overwrite)")
+    if out.suffix != ".npz":
+        raise UserError(f"{out}: expected an output path ending in .npz")
+    db, meta, report = build_demonstrations(cfg, progress=not args.quiet)
+    from evojax_motion.database import save_database
+
+    save_database(out, db, meta)
+    print_demo_summary(report, out)
+    return 0
+
+
+def _cmd_train(args) -> int:
+    from evojax_motion.config import load_config
+    from evojax_motion.train import run_training
+
+    cfg = load_config(args.config, args.set)
+    run_training(cfg, Path(args.out), resume=args.resume, progress=not args.quiet)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="evojax-motion",
+        description="Human-like, low-torque robot motions from an evolving primitive database.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("demos", help="generate the (synthetic) human demonstration database")
+    p.add_argument("--config", required=True, help="YAML config, e.g. configs/catch_ball.yaml")
+    p.add_argument("--out", required=True, help="output .npz")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_demos)
+
+    p = sub.add_parser("train", help="evolve the database (the paper's offline process)")
+    p.add_argument("config", help="YAML config, e.g. configs/catch_ball.yaml")
+    p.add_argument("--out", required=True, help="run directory")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_train)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the console script. Returns the exit status."""
+    try:
+        args = build_parser().parse_args(argv)
+        return int(args.func(args) or 0)
+    except UserError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

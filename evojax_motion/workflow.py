@@ -1,0 +1,78 @@
+"""Glue from a validated ``Config`` to the pipeline's objects (robot, dynamics, demonstrations).
+
+The CLI and the training run both start here, so one config always yields the same robot and the
+same demonstration database.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from evojax_motion.config import Config
+from evojax_motion.database import Database, DatabaseMeta, load_database
+from evojax_motion.dynamics import Dynamics, make_dynamics
+from evojax_motion.errors import UserError
+from evojax_motion.robot import Robot, load_robot
+
+
+def make_robot(cfg: Config) -> Robot:
+    """The robot named by ``cfg.robot`` (a shipped name, or an MJCF path + joints + site)."""
+    spec = cfg.robot.mjcf if cfg.robot.mjcf is not None else cfg.robot.name
+    return load_robot(spec, joints=cfg.robot.joints, site=cfg.robot.site)
+
+
+def make_robot_dynamics(cfg: Config) -> tuple[Robot, Dynamics]:
+    robot = make_robot(cfg)
+    return robot, make_dynamics(robot, backend=cfg.dynamics)
+
+
+def check_database_matches_robot(meta: DatabaseMeta, robot: Robot, where: str) -> None:
+    """Refuse a database recorded for another robot (joint names or count differ)."""
+    if tuple(meta.joint_names) != tuple(robot.joint_names):
+        raise UserError(
+            f"{where}: database joints {list(meta.joint_names)} do not match robot "
+            f"{robot.name!r} joints {list(robot.joint_names)}"
+        )
+
+
+def build_demonstrations(
+    cfg: Config, progress: bool = True
+) -> tuple[Database, DatabaseMeta, dict]:
+    """The human demonstration database of a config: ``demos_file`` if set, else synthetic ones.
+
+    Returns ``(db, meta, report)``; ``report`` is the summary printed by the CLI.
+    """
+    from evojax_motion.demos import generate_demonstrations, summarize_demonstrations
+
+    robot, dyn = make_robot_dynamics(cfg)
+    if cfg.demos_file is not None:
+        db, meta = load_database(cfg.demos_file)
+        check_database_matches_robot(meta, robot, cfg.demos_file)
+        keep = np.asarray(db.valid) & (np.asarray(db.origin) == 0)
+        db = Database(*(np.asarray(a)[keep] for a in db))
+    else:
+        key = jax.random.key(cfg.demos.seed)
+        db, report = generate_demonstrations(robot, dyn, cfg.demos, key)
+        meta = DatabaseMeta(
+            robot_name=robot.name,
+            mjcf=robot.mjcf,
+            joint_names=tuple(robot.joint_names),
+            site_name=robot.site_name,
+            synthetic=True,
+            description=str(report.get("description", "synthetic human-like demonstrations")),
+        )
+    return db, meta, summarize_demonstrations(db, robot)
+
+
+def print_demo_summary(report: dict, path: Path | None = None) -> None:
+    """Human-readable summary of a demonstration database (count, durations, region, margins)."""
+    width = max(len(k) for k in report)
+    for key, value in report.items():
+        if isinstance(value, float):
+            value = f"{value:.4g}"
+        print(f"{key:<{width}}  {value}")
+    if path is not None:
+        print(f"{'written to':<{width}}  {path}")

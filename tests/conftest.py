@@ -1,0 +1,15 @@
+"""Shared test settings: CPU, deterministic, x64 on request."""
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+
+
+@pytest.fixture
+def x64():
+    """Run the test body with float64 enabled (accuracy checks against C MuJoCo / SciPy)."""
+    with jax.enable_x64(True):
+        yield
