@@ -85,7 +85,8 @@ def derivatives(grid: TimeGrid, q: jnp.ndarray, duration: jnp.ndarray):
 
     Returns ``qd, qdd`` with the shape of ``q``.
     """
-    d = jnp.asarray(duration)[..., None, None]
+    q = jnp.asarray(q)
+    d = jnp.asarray(duration, q.dtype)[..., None, None]
     d1 = jnp.asarray(grid.d1, q.dtype)
     d2 = jnp.asarray(grid.d2, q.dtype)
     qd = jnp.einsum("ts,...sj->...tj", d1, q) / d
