@@ -1,27 +1,39 @@
 """Recursive Newton-Euler inverse dynamics compiled from a MuJoCo model (the fast backend).
 
-Implements the torque model of the paper's cost (Park et al. 2008, eq. 5):
-``tau = M(q) qdd + C(q, qd) qd + g(q)`` for the robot's controlled hinge/slide joints, plus the
-joint-space terms MuJoCo's ``mj_inverse`` adds so that both backends return its
-``qfrc_inverse``: ``armature * qdd + damping * qd + stiffness * (q - qpos_spring)`` (all zero in
-the shipped models).
+Implements the torque model of the paper's cost (Park et al. 2008, eq. 5),
+``tau = M(q) qdd + C(q, qd) qd + g(q)``, for the robot's controlled hinge/slide joints, plus the
+joint-space terms that MuJoCo's ``mj_inverse`` adds, so that both backends return its
+``qfrc_inverse``: ``armature * qdd + damping * qd + stiffness * (q - qpos_spring)`` (all zero
+in the shipped models).
 
-The kinematic tree is read once from ``mjModel`` (body and joint frames, inertias, gravity, the
-site) and unrolled in Python into one straight-line JAX graph per model: nbody is small, so XLA
-sees a single fused computation with no gathers or loops. Quantities are expressed in the world
-frame: twists and spatial accelerations are taken at the world origin (Featherstone's spatial
-algebra), forces as (force, moment about the origin). This avoids per-body 6x6 transforms;
-every 3x3 product is written elementwise, so GPUs never route it through TF32 matmuls.
+Compilation (numpy, once per model). The kinematic tree is read from ``mjModel`` and reduced to
+one rigid *segment* per controlled joint: everything rigidly attached to a joint's output frame
+(its body, welded children, bodies whose joints are not controlled and so are held at
+``qpos0``) is merged into one mass, centre of mass and inertia, and every constant transform
+between two controlled joints is folded into the next joint's transform. Joint ``j`` then
+moves its segment relative to its parent segment by ``M_j = C0_j + s_j C1_j + c_j C2_j``, with
+``s = sin(angle), c = 1 - cos(angle)`` for a hinge (Rodrigues about an axis through an anchor)
+and ``s = displacement, c = 0`` for a slide. Bodies no controlled joint moves take their pose
+from ``mj_kinematics`` at ``qpos0`` and carry no controlled joint's weight.
 
-Joints that the robot does not control are held at ``qpos0`` (identity transform, at rest).
-Bodies that no controlled joint moves take their world pose from ``mj_kinematics`` at
-``qpos0`` and drop out of the dynamics (no controlled joint carries their weight).
-Constraints, contacts, gravity compensation and fluid forces are not modelled.
+Evaluation (JAX, per sample). Forward kinematics is a chain of J 3x4 products (the only
+sequential part). The rest is vectorised over the J segments in the world frame, with twists,
+accelerations and wrenches taken at the world origin (Featherstone's spatial algebra):
+    v = A (S qd),    a = A (S qdd + v_parent x S qd) - g,    f = I a + v x* I v,
+    tau = S . (A^T f)
+where ``A[j, i] = 1`` if joint ``i`` is ``j`` or one of its ancestors: tree sums become one
+constant product. All small products are written as broadcast multiply-sums, so XLA fuses them
+and GPUs never route them through TF32 matmuls. About a hundred JAX ops per model, so compiling
+a vmapped value-and-grad takes seconds.
+
+Constraints, contacts, gravity compensation and fluid forces are not modelled (refused where
+they would change ``qfrc_inverse`` and can be seen in the model).
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import mujoco
@@ -31,70 +43,18 @@ from evojax_motion.errors import UserError
 
 _HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
 _SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
+_LAST_COLUMN = np.array([0.0, 0.0, 0.0, 1.0], np.float32)  # weak enough: exact 0/1 in any dtype
 
 
-class RneaFunctions(NamedTuple):
-    """Pure single-sample functions (un-jitted) built by `make_rnea`."""
+class BackendFunctions(NamedTuple):
+    """Pure single-sample functions (un-jitted) that a backend builds for `Dynamics`."""
 
     inverse: Callable  # (q (J,), qd (J,), qdd (J,)) -> tau (J,)
     site_pose: Callable  # q (J,) -> (pos (3,), rot (3, 3))
     body_positions: Callable  # q (J,) -> (nbody, 3), world body origins (xpos)
 
 
-class _Joint(NamedTuple):
-    k: int  # index in the robot's joint list (tau[k])
-    kind: int  # _HINGE | _SLIDE
-    pos: np.ndarray  # (3,) anchor in the body frame
-    axis: np.ndarray  # (3,) unit axis in the body frame
-    skew: np.ndarray  # (3, 3) [axis]x, for the Rodrigues formula
-    skew2: np.ndarray  # (3, 3) [axis]x^2
-    qpos0: float
-
-
-class _Body(NamedTuple):
-    parent: int
-    parent_moving: bool
-    pos: np.ndarray  # (3,) origin in the parent frame, or world origin if parent is fixed
-    rot: np.ndarray  # (3, 3) frame in the parent frame, or world frame if parent is fixed
-    joints: tuple[_Joint, ...]  # controlled joints, in MuJoCo order
-    mass: float
-    has_inertia: bool
-    ipos: np.ndarray  # (3,) centre of mass in the body frame
-    irot: np.ndarray  # (3, 3) principal inertia frame in the body frame
-    inertia: np.ndarray  # (3,) principal moments
-
-
-# -- elementwise 3-vector / 3x3 algebra (no dot_general: exact float32 on GPUs, fuses on CPU) --
-
-
-def _mv(a, x):
-    """a: (3, 3), x: (3,) -> a @ x."""
-    return jnp.sum(a * x[None, :], axis=-1)
-
-
-def _mtv(a, x):
-    """a: (3, 3), x: (3,) -> a.T @ x."""
-    return jnp.sum(a * x[:, None], axis=0)
-
-
-def _mm(a, b):
-    """a, b: (3, 3) -> a @ b."""
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
-
-
-def _cross(a, b):
-    """a, b: (3,) -> a x b."""
-    return jnp.stack(
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    )
-
-
-def _dot(a, b):
-    return jnp.sum(a * b)
+# -- compile time (numpy, float64) ------------------------------------------------------------
 
 
 def _quat_mat(quat: np.ndarray) -> np.ndarray:
@@ -107,228 +67,290 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def _transform(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous transform."""
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = rot, pos
+    return t
+
+
+def _generators(kind: int, axis: np.ndarray, anchor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(G1, G2), 4x4: the joint's local transform is I + s G1 + c G2 (see module docstring)."""
+    g1, g2 = np.zeros((4, 4)), np.zeros((4, 4))
+    if kind == _HINGE:  # rotate about `axis` through `anchor`: x -> anchor + R (x - anchor)
+        k = _skew(axis)
+        g1[:3, :3], g1[:3, 3] = k, -k @ anchor
+        g2[:3, :3], g2[:3, 3] = k @ k, -k @ k @ anchor
+    else:
+        g1[:3, 3] = axis
+    return g1, g2
+
+
+def _model_name(m: mujoco.MjModel) -> str:
+    return m.names.split(b"\x00", 1)[0].decode()
+
+
 def _check_supported(m: mujoco.MjModel, moving: np.ndarray) -> None:
     """Refuse model features whose forces `mj_inverse` would add but this RNEA does not."""
-    model_name = m.names.split(b"\x00", 1)[0].decode()
-    where = f"model '{model_name}'"
+    where = f"model '{_model_name(m)}'"
     for b in np.nonzero(moving)[0]:
         for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
             if m.jnt_type[j] not in (_HINGE, _SLIDE):
                 name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
                 raise UserError(
-                    f"{where}: joint '{name}': expected hinge or slide joints in the moving "
-                    "tree (ball and free joints are not supported by the RNEA backend)"
+                    f"{where}: joint '{name}': expected hinge or slide joints below the "
+                    "controlled joints (ball and free joints are not supported by 'rnea')"
                 )
     if np.any(m.body_gravcomp[moving] != 0):
-        raise UserError(f"{where}: body gravcomp: expected 0 (not supported by RNEA)")
+        raise UserError(f"{where}: body gravcomp: expected 0 (not supported by 'rnea')")
     if m.opt.density != 0 or m.opt.viscosity != 0:
         raise UserError(f"{where}: option density/viscosity: expected 0 (no fluid forces)")
     if m.ntendon and (np.any(m.tendon_stiffness != 0) or np.any(m.tendon_damping != 0)):
-        raise UserError(f"{where}: tendon stiffness/damping: expected 0 (not supported by RNEA)")
+        raise UserError(f"{where}: tendon stiffness/damping: expected 0 (not supported by 'rnea')")
 
 
-def make_rnea(robot: Any, dtype: Any = jnp.float32) -> RneaFunctions:
-    """Compile `robot.mj_model` into RNEA and forward-kinematics functions.
+class _Tree(NamedTuple):
+    """The model reduced to J segments, in topological order (parents first); float64."""
 
-    robot: needs `mj_model`, `joint_ids (J,)`, `site_id` (see `evojax_motion.robot.Robot`).
-    dtype: float dtype of every constant and of the computation.
-    """
-    m = robot.mj_model
-    dtype = np.dtype(dtype)
-    joint_ids = [int(j) for j in np.asarray(robot.joint_ids)]
+    order: np.ndarray  # (J,) robot joint index of each segment
+    c0: np.ndarray  # (J, 3, 4) M_j = C0 + s C1 + c C2: segment j in its parent's frame
+    c1: np.ndarray  # (J, 3, 4)
+    c2: np.ndarray  # (J, 3, 4)
+    parent: np.ndarray  # (J,) parent segment, -1 for a root (its C's are in the world frame)
+    hinge: np.ndarray  # (J,) 1.0 hinge, 0.0 slide
+    qpos0: np.ndarray  # (J,) joint angle/displacement = q - qpos0
+    axis: np.ndarray  # (J, 3) joint axis in its segment frame (invariant under the joint)
+    anchor: np.ndarray  # (J, 3) joint anchor in its segment frame (invariant for a hinge)
+    ancestors: np.ndarray  # (J, J) A[j, i] = 1 if i == j or i is an ancestor of j
+    mass: np.ndarray  # (J,) segment mass
+    com: np.ndarray  # (J, 3) segment centre of mass, segment frame
+    inertia: np.ndarray  # (J, 3, 3) segment inertia about its centre of mass, segment frame
+    body_segment: np.ndarray  # (nbody,) segment a body is attached to, -1 if it never moves
+    body_offset: np.ndarray  # (nbody, 4, 4) body frame in its segment frame (or world frame)
+
+
+def _reduce_tree(m: mujoco.MjModel, joint_ids: list[int]) -> _Tree:
     ctrl = {j: k for k, j in enumerate(joint_ids)}
-    n_joints = len(joint_ids)
-    for j in joint_ids:
-        if m.jnt_type[j] not in (_HINGE, _SLIDE):
-            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
-            raise UserError(f"joints: '{name}': expected a hinge or slide joint")
-
-    def c(x):  # constants live as numpy arrays of the requested dtype (folded into the graph)
-        return np.asarray(x, dtype)
-
     # Bodies are stored parent-before-child, so one forward sweep sets `moving`.
     moving = np.zeros(m.nbody, bool)
     for b in range(1, m.nbody):
         adr, num = m.body_jntadr[b], m.body_jntnum[b]
-        own = any(j in ctrl for j in range(adr, adr + num))
-        moving[b] = own or moving[m.body_parentid[b]]
+        moving[b] = moving[m.body_parentid[b]] or any(j in ctrl for j in range(adr, adr + num))
     _check_supported(m, moving)
 
-    # World poses of the fixed bodies and sites, from MuJoCo itself at qpos0.
-    d0 = mujoco.MjData(m)
+    d0 = mujoco.MjData(m)  # world poses of the never-moving bodies, at qpos0
     d0.qpos[:] = m.qpos0
     mujoco.mj_kinematics(m, d0)
-    fixed_xpos = d0.xpos.copy()
-    fixed_xmat = d0.xmat.reshape(-1, 3, 3).copy()
 
-    bodies: dict[int, _Body] = {}
+    # Walk the tree: `rel` = current frame in the frame of segment `seg` (world if seg == -1).
+    seg_of_joint, parent, offset = [], [], []
+    body_segment = np.full(m.nbody, -1)
+    body_offset = np.zeros((m.nbody, 4, 4))
+    for b in range(m.nbody):
+        body_offset[b] = _transform(d0.xmat[b].reshape(3, 3), d0.xpos[b])
     for b in np.nonzero(moving)[0]:
-        p = int(m.body_parentid[b])
-        rot = _quat_mat(m.body_quat[b])
-        pos = m.body_pos[b].copy()
-        if not moving[p]:  # fold the fixed parent's world pose into this body's constants
-            pos = fixed_xpos[p] + fixed_xmat[p] @ pos
-            rot = fixed_xmat[p] @ rot
-        joints = []
+        p = m.body_parentid[b]
+        seg, rel = int(body_segment[p]), body_offset[p]
+        rel = rel @ _transform(_quat_mat(m.body_quat[b]), m.body_pos[b])
         for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
             if j not in ctrl:
                 continue  # held at qpos0: identity transform, at rest
-            axis = m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j])
-            skew = _skew(axis)
-            joints.append(
-                _Joint(
-                    k=ctrl[j],
-                    kind=int(m.jnt_type[j]),
-                    pos=c(m.jnt_pos[j]),
-                    axis=c(axis),
-                    skew=c(skew),
-                    skew2=c(skew @ skew),
-                    qpos0=float(m.qpos0[m.jnt_qposadr[j]]),
-                )
-            )
-        bodies[int(b)] = _Body(
-            parent=p,
-            parent_moving=bool(moving[p]),
-            pos=c(pos),
-            rot=c(rot),
-            joints=tuple(joints),
-            mass=float(m.body_mass[b]),
-            has_inertia=bool(m.body_mass[b] > 0 or np.any(m.body_inertia[b] > 0)),
-            ipos=c(m.body_ipos[b]),
-            irot=c(_quat_mat(m.body_iquat[b])),
-            inertia=c(m.body_inertia[b]),
-        )
-    order = sorted(bodies)
+            seg_of_joint.append(j)
+            parent.append(seg)
+            offset.append(rel)
+            seg, rel = len(seg_of_joint) - 1, np.eye(4)
+        body_segment[b], body_offset[b] = seg, rel
+
+    n = len(seg_of_joint)
+    order = np.asarray([ctrl[j] for j in seg_of_joint])
+    c0, c1, c2 = np.zeros((n, 3, 4)), np.zeros((n, 3, 4)), np.zeros((n, 3, 4))
+    axis, anchor = np.zeros((n, 3)), np.zeros((n, 3))
+    for s, j in enumerate(seg_of_joint):
+        axis[s] = m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j])
+        anchor[s] = m.jnt_pos[j]
+        g1, g2 = _generators(int(m.jnt_type[j]), axis[s], anchor[s])
+        c0[s], c1[s], c2[s] = offset[s][:3], (offset[s] @ g1)[:3], (offset[s] @ g2)[:3]
+    ancestors = np.zeros((n, n))
+    for s in range(n):
+        i = s
+        while i >= 0:
+            ancestors[s, i] = 1.0
+            i = parent[i]
+
+    # Merge the bodies of each segment: mass, centre of mass, inertia about it (parallel axis).
+    mass, com, inertia = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3, 3))
+    for b in np.nonzero(moving)[0]:
+        s, rel = body_segment[b], body_offset[b]
+        mass[s] += m.body_mass[b]
+        com[s] += m.body_mass[b] * (rel[:3, :3] @ m.body_ipos[b] + rel[:3, 3])
+    com /= np.maximum(mass, 1e-300)[:, None]
+    for b in np.nonzero(moving)[0]:
+        s, rel = body_segment[b], body_offset[b]
+        rot = rel[:3, :3] @ _quat_mat(m.body_iquat[b])
+        d = rel[:3, :3] @ m.body_ipos[b] + rel[:3, 3] - com[s]
+        inertia[s] += rot @ np.diag(m.body_inertia[b]) @ rot.T
+        inertia[s] += m.body_mass[b] * (d @ d * np.eye(3) - np.outer(d, d))
+
+    return _Tree(
+        order=order,
+        c0=c0,
+        c1=c1,
+        c2=c2,
+        parent=np.asarray(parent, int),
+        hinge=np.asarray([float(m.jnt_type[j] == _HINGE) for j in seg_of_joint]),
+        qpos0=np.asarray([m.qpos0[m.jnt_qposadr[j]] for j in seg_of_joint]),
+        axis=axis,
+        anchor=anchor,
+        ancestors=ancestors,
+        mass=mass,
+        com=com,
+        inertia=inertia,
+        body_segment=body_segment,
+        body_offset=body_offset,
+    )
+
+
+# -- run time (JAX): broadcast multiply-sums, fused by XLA, exact float32 on GPUs --------------
+
+
+def _mv(a, x):
+    """a: (..., 3, k), x: (..., k) -> a @ x: (..., 3)."""
+    return jnp.sum(a * x[..., None, :], axis=-1)
+
+
+def _mtv(a, x):
+    """a: (..., 3, 3), x: (..., 3) -> a.T @ x."""
+    return jnp.sum(a * x[..., :, None], axis=-2)
+
+
+def _cross(a, b):
+    """a, b: (..., 3) -> a x b."""
+    return jnp.cross(a, b)
+
+
+def _compose(a, b):
+    """Rigid transforms as [R | o], (3, 4) each -> a @ b (with the implicit last row 0 0 0 1)."""
+    return jnp.sum(a[:, :3, None] * b[None, :, :], axis=1) + a * _LAST_COLUMN
+
+
+def _tree_sum(a, x):
+    """a: (J, J) constant, x: (J, k) -> a @ x, as a fusible multiply-sum (no TF32)."""
+    return jnp.sum(a[:, :, None] * x[None, :, :], axis=1)
+
+
+def make_rnea(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
+    """Compile `robot.mj_model` into RNEA and forward-kinematics functions.
+
+    robot: needs `mj_model`, `joint_ids (J,)`, `site_id` (see `evojax_motion.robot.Robot`).
+    dtype: float dtype of the constants and of the computation.
+    """
+    m = robot.mj_model
+    joint_ids = [int(j) for j in np.asarray(robot.joint_ids)]
+    for j in joint_ids:
+        if m.jnt_type[j] not in (_HINGE, _SLIDE):
+            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
+            raise UserError(f"joints: '{name}': expected a hinge or slide joint")
+    tree = _reduce_tree(m, joint_ids)
+    n = len(joint_ids)
+    order = tree.order  # segment s is robot joint order[s]
+
+    def c(x):  # constants are numpy arrays of `dtype`, folded into the graph
+        return np.asarray(x, dtype)
+
+    c0, c1, c2 = c(tree.c0), c(tree.c1), c(tree.c2)
+    hinge, slide, qpos0 = c(tree.hinge), c(1.0 - tree.hinge), c(tree.qpos0)
+    axis, anchor = c(tree.axis), c(tree.anchor)
+    ancestors, ancestors_t = c(tree.ancestors), c(tree.ancestors.T)
+    mass, com, inertia = c(tree.mass)[:, None], c(tree.com), c(tree.inertia)
+    parents = [int(p) for p in tree.parent]
+    # Permutations and the parent lookup are constant 0/1 matrices: a gather's gradient is a
+    # scatter, slow on CPU; a product's is a product.
+    parent_of = c(np.eye(n + 1)[tree.parent][:, :n])  # row j: one-hot parent, zero for a root
+    identity = bool(np.all(order == np.arange(n)))
+    to_segments = c(np.eye(n)[order])  # x_seg = to_segments @ x_robot
 
     disabled = int(m.opt.disableflags)
-    gravity = m.opt.gravity.copy()
-    if disabled & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY):
-        gravity[:] = 0.0
-    # Joint-space terms of qfrc_inverse (mass-matrix armature, minus the passive forces).
-    dof_adr = np.asarray([m.jnt_dofadr[j] for j in joint_ids])
-    qpos_adr = np.asarray([m.jnt_qposadr[j] for j in joint_ids])
+    gravity = np.zeros(3) if disabled & mujoco.mjtDisableBit.mjDSBL_GRAVITY else m.opt.gravity
+    # The base accelerates against gravity, so every segment feels it (no per-body term).
+    root_acc = c(np.concatenate([np.zeros(3), -gravity]))
+    # Joint-space terms of qfrc_inverse: armature (in M) and minus the passive forces.
+    dof_adr, qpos_adr = m.jnt_dofadr[joint_ids], m.jnt_qposadr[joint_ids]
     armature = m.dof_armature[dof_adr]
-    damping = m.dof_damping[dof_adr]
-    stiffness = m.jnt_stiffness[joint_ids]
-    if disabled & int(mujoco.mjtDisableBit.mjDSBL_DAMPER):
-        damping = np.zeros_like(damping)
-    if disabled & int(mujoco.mjtDisableBit.mjDSBL_SPRING):
-        stiffness = np.zeros_like(stiffness)
-    qpos_spring = m.qpos_spring[qpos_adr]
-    has_armature, has_damping, has_spring = (bool(np.any(x != 0)) for x in (armature, damping, stiffness))
-    armature, damping, stiffness, qpos_spring = map(c, (armature, damping, stiffness, qpos_spring))
-    root_acc = c(-gravity)  # base accelerates against gravity: every body feels g, no per-body term
+    damping = m.dof_damping[dof_adr] * (not (disabled & mujoco.mjtDisableBit.mjDSBL_DAMPER))
+    stiffness = m.jnt_stiffness[joint_ids] * (not (disabled & mujoco.mjtDisableBit.mjDSBL_SPRING))
+    passive = bool(np.any(armature) or np.any(damping) or np.any(stiffness))
+    armature, damping, stiffness = c(armature), c(damping), c(stiffness)
+    qpos_spring = c(m.qpos_spring[qpos_adr])
 
     site_id = int(robot.site_id)
     site_body = int(m.site_bodyid[site_id])
-    site_pos, site_rot = c(m.site_pos[site_id]), c(_quat_mat(m.site_quat[site_id]))
-    fixed_site = (c(d0.site_xpos[site_id]), c(d0.site_xmat[site_id].reshape(3, 3)))
+    site_seg = int(tree.body_segment[site_body])  # -1: the site never moves
+    site_offset = _transform(_quat_mat(m.site_quat[site_id]), m.site_pos[site_id])
+    site_rel = c((tree.body_offset[site_body] @ site_offset)[:3])  # in its segment (or world)
+
+    def _permute(p, x):
+        return x if identity else _tree_sum(p, x[:, None])[:, 0]
 
     def kinematics(q):
-        """q: (J,) -> world frames {body: (R (3,3), o (3,))} and joint motions {k: (axis, anchor)}.
-
-        Follows mj_kinematics: a body starts at parent pose * (body_pos, body_quat); each joint
-        then rotates about (hinge) or translates along (slide) its axis through its anchor, both
-        taken in the frame left by the previous joints of the same body.
-        """
-        frames, motions = {}, {}
-        for b in order:
-            body = bodies[b]
-            if body.parent_moving:
-                rp, op = frames[body.parent]
-                rot, org = _mm(rp, body.rot), op + _mv(rp, body.pos)
-            else:
-                rot, org = body.rot, body.pos
-            for jnt in body.joints:
-                angle = q[jnt.k] - jnt.qpos0
-                axis_w = _mv(rot, jnt.axis)
-                anchor = org + _mv(rot, jnt.pos)
-                motions[jnt.k] = (axis_w, anchor)
-                if jnt.kind == _HINGE:
-                    local = np.eye(3, dtype=dtype) + jnp.sin(angle) * jnt.skew
-                    local = local + (1 - jnp.cos(angle)) * jnt.skew2
-                    rot = _mm(rot, local)
-                    org = anchor - _mv(rot, jnt.pos)
-                else:
-                    org = org + axis_w * angle
-            frames[b] = (rot, org)
-        return frames, motions
-
-    def motion_subspace(kind, axis_w, anchor):
-        """Joint twist per unit rate at the world origin: (angular (3,), linear (3,))."""
-        if kind == _HINGE:
-            return axis_w, _cross(anchor, axis_w)
-        return jnp.zeros_like(axis_w), axis_w
+        """q: (J,) robot order -> segment frames W: (J, 3, 4) = [R | o] in the world frame."""
+        angle = _permute(to_segments, jnp.asarray(q, dtype)) - qpos0
+        s = hinge * jnp.sin(angle) + slide * angle
+        cc = hinge * (1.0 - jnp.cos(angle))
+        local = c0 + s[:, None, None] * c1 + cc[:, None, None] * c2  # (J, 3, 4)
+        frames = []
+        for j in range(n):
+            p = parents[j]
+            frames.append(local[j] if p < 0 else _compose(frames[p], local[j]))
+        return jnp.stack(frames)
 
     def inverse(q, qd, qdd):
         """q, qd, qdd: (J,) -> tau (J,) = M qdd + C qd + g (+ armature, damping, stiffness)."""
         q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
-        frames, motions = kinematics(q)
-        zero = jnp.zeros(3, dtype)
-        vel, acc, wrench = {}, {}, {}
-        # Forward pass: twists (w, v0) and spatial accelerations (dw, dv0) at the world origin.
-        for b in order:
-            body = bodies[b]
-            if body.parent_moving:
-                (w, v), (dw, dv) = vel[body.parent], acc[body.parent]
-            else:
-                w, v, dw, dv = zero, zero, zero, root_acc
-            for jnt in body.joints:
-                sw, sv = motion_subspace(jnt.kind, *motions[jnt.k])
-                # S is fixed in the frame moving with (w, v): dS/dt = (w, v) x S.
-                dw = dw + sw * qdd[jnt.k] + _cross(w, sw) * qd[jnt.k]
-                dv = dv + sv * qdd[jnt.k] + (_cross(w, sv) + _cross(v, sw)) * qd[jnt.k]
-                w, v = w + sw * qd[jnt.k], v + sv * qd[jnt.k]
-            vel[b], acc[b] = (w, v), (dw, dv)
-            if not body.has_inertia:
-                wrench[b] = (zero, zero)
-                continue
-            rot, org = frames[b]
-            com = org + _mv(rot, body.ipos)
-            irot = _mm(rot, body.irot)
-            vcom = v + _cross(w, com)
-            acom = dv + _cross(dw, com) + _cross(w, vcom)
-            force = body.mass * acom
-            # Newton-Euler about the centre of mass, I_c = irot diag(inertia) irot^T.
-            i_dw = _mv(irot, body.inertia * _mtv(irot, dw))
-            i_w = _mv(irot, body.inertia * _mtv(irot, w))
-            moment = i_dw + _cross(w, i_w) + _cross(com, force)
-            wrench[b] = (force, moment)
-        # Backward pass: accumulate subtree wrenches; tau_k = S_k . f.
-        tau = [None] * n_joints
-        for b in reversed(order):
-            body = bodies[b]
-            force, moment = wrench[b]
-            for jnt in body.joints:
-                axis_w, anchor = motions[jnt.k]
-                if jnt.kind == _HINGE:
-                    tau[jnt.k] = _dot(axis_w, moment - _cross(anchor, force))
-                else:
-                    tau[jnt.k] = _dot(axis_w, force)
-            if body.parent_moving:
-                pf, pm = wrench[body.parent]
-                wrench[body.parent] = (pf + force, pm + moment)
-        tau = jnp.stack(tau)
-        if has_armature:
-            tau = tau + armature * qdd
-        if has_damping:
-            tau = tau + damping * qd
-        if has_spring:
-            tau = tau + stiffness * (q - qpos_spring)
+        frames = kinematics(q)
+        rot, org = frames[:, :, :3], frames[:, :, 3]
+        # Joint motion subspaces S = (angular, linear at the origin), world frame: (J, 6).
+        axis_w = _mv(rot, axis)
+        anchor_w = _mv(rot, anchor) + org
+        sw = hinge[:, None] * axis_w
+        sv = hinge[:, None] * _cross(anchor_w, axis_w) + slide[:, None] * axis_w
+        rate, accel = (_permute(to_segments, x)[:, None] for x in (qd, qdd))
+        xw, xv = sw * rate, sv * rate  # joint twists
+        vel = _tree_sum(ancestors, jnp.concatenate([xw, xv], axis=1))  # segment twists (J, 6)
+        pvel = _tree_sum(parent_of, vel)
+        pw, pv = pvel[:, :3], pvel[:, 3:]
+        # Joint axes move with the parent: d/dt (S qd) = S qdd + v_parent x (S qd).
+        bias = jnp.concatenate([_cross(pw, xw), _cross(pw, xv) + _cross(pv, xw)], axis=1)
+        src = jnp.concatenate([sw * accel, sv * accel], axis=1) + bias
+        acc = _tree_sum(ancestors, src) + root_acc
+        w, v, dw, dv = vel[:, :3], vel[:, 3:], acc[:, :3], acc[:, 3:]
+        # Newton-Euler per segment, about its centre of mass; moment taken about the origin.
+        com_w = _mv(rot, com) + org
+        acom = dv + _cross(dw, com_w) + _cross(w, v + _cross(w, com_w))
+        force = mass * acom
+        i_dw = _mv(rot, _mv(inertia, _mtv(rot, dw)))
+        i_w = _mv(rot, _mv(inertia, _mtv(rot, w)))
+        moment = i_dw + _cross(w, i_w) + _cross(com_w, force)
+        sub = _tree_sum(ancestors_t, jnp.concatenate([moment, force], axis=1))  # subtree wrench
+        tau = _permute(to_segments.T, jnp.sum(sw * sub[:, :3] + sv * sub[:, 3:], axis=1))
+        if passive:
+            tau = tau + armature * qdd + damping * qd + stiffness * (q - qpos_spring)
         return tau
 
     def site_pose(q):
         """q: (J,) -> site position (3,) and rotation matrix (3, 3), world frame."""
-        if site_body not in bodies:
-            return jnp.asarray(fixed_site[0]), jnp.asarray(fixed_site[1])
-        frames, _ = kinematics(jnp.asarray(q, dtype))
-        rot, org = frames[site_body]
-        return org + _mv(rot, site_pos), _mm(rot, site_rot)
+        pose = site_rel if site_seg < 0 else _compose(kinematics(q)[site_seg], site_rel)
+        return jnp.asarray(pose[:, 3]), jnp.asarray(pose[:, :3])
+
+    moving_bodies = np.nonzero(tree.body_segment >= 0)[0]
+    body_seg = tree.body_segment[moving_bodies]
+    body_org = c(tree.body_offset[moving_bodies, :3, 3])
+    fixed_xpos = c(tree.body_offset[:, :3, 3])
 
     def body_positions(q):
         """q: (J,) -> (nbody, 3) world body origins (MuJoCo xpos), world body first."""
-        frames, _ = kinematics(jnp.asarray(q, dtype))
-        rows = [frames[b][1] if b in frames else c(fixed_xpos[b]) for b in range(m.nbody)]
-        return jnp.stack([jnp.asarray(r, dtype) for r in rows])
+        w = kinematics(q)[body_seg]
+        return (
+            jnp.asarray(fixed_xpos).at[moving_bodies].set(_mv(w[:, :, :3], body_org) + w[:, :, 3])
+        )
 
-    return RneaFunctions(inverse=inverse, site_pose=site_pose, body_positions=body_positions)
+    return BackendFunctions(inverse=inverse, site_pose=site_pose, body_positions=body_positions)

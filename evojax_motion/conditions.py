@@ -1,0 +1,172 @@
+"""The fixed set of conditions the evolution optimises for (paper sec. 3.1 step 2 and 4.2).
+
+"A set of 300 conditions is randomly created. Each condition contains the information of final joint
+angle, velocity and final position and rotation of right hand" (sec. 4.2). The set is drawn once,
+with an explicit PRNG key, from where the robot will work, and reused by every generation:
+
+- target hand position: uniform in the bounding box of the demonstrations' hand positions (grown by
+  ``region_margin``), kept only where at least ``min_neighbours`` demonstrations lie within the
+  basis radius (rejection sampling over ``candidates_per_condition * m`` candidates, in key order);
+- ``qf``: a human-like final posture, by IK of the target (``ik.solve_ik``) started from the nearest
+  neighbour's final posture and pulled toward the neighbours' mean final posture in the redundant
+  directions; candidates the IK cannot reach within ``ik_tolerance`` are rejected;
+- ``q0 = robot.rest``, ``qd0 = qdf = 0`` (rest to rest, like the demonstrations);
+- duration: the neighbours' mean duration, or ``EvolutionSettings.duration``.
+
+Each condition also carries its human-only reference: the movement compiler via interpolation
+(eq. 1-2) on a basis of the human demonstrations alone. ``human_deviation_deg`` in the training
+metrics measures how far evolved motions drift from it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compile_interp import Boundary, compile_interpolation
+from evojax_motion.database import HUMAN, Database
+from evojax_motion.dynamics import Dynamics
+from evojax_motion.errors import UserError
+from evojax_motion.ik import solve_ik
+from evojax_motion.robot import Robot
+from evojax_motion.timegrid import TimeGrid
+
+INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant
+
+
+class Conditions(NamedTuple):
+    """m conditions. ``target (m, 3)`` [m], ``boundary`` (``q0, qf, qd0, qdf (m, J)``,
+    ``duration (m,)``), ``ik_error (m,)`` [m] of ``qf``, ``n_human_inside (m,)`` demonstrations
+    within the basis radius, ``human_q (m, T, J)`` human-only interpolation (eq. 1-2)."""
+
+    target: jnp.ndarray
+    boundary: Boundary
+    ik_error: jnp.ndarray
+    n_human_inside: jnp.ndarray
+    human_q: jnp.ndarray
+
+
+def human_mask(db: Database) -> np.ndarray:
+    """``(N,)`` valid human demonstrations."""
+    return np.asarray(db.valid) & (np.asarray(db.origin) == HUMAN)
+
+
+def sampling_box(db: Database, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo (3,), hi (3,))``: the demonstrations' hand-position box grown by ``margin``."""
+    pos = np.asarray(db.condition)[human_mask(db)]
+    if pos.shape[0] == 0:
+        raise UserError("demonstrations: expected at least one valid human primitive, got none")
+    lo, hi = pos.min(axis=0) - margin, pos.max(axis=0) + margin
+    if not (hi > lo).all():
+        raise UserError(
+            f"evolution.region_margin: {margin} m leaves an empty region "
+            f"(demonstration extent {np.round(pos.max(0) - pos.min(0), 3).tolist()} m)"
+        )
+    return lo.astype(np.float32), hi.astype(np.float32)
+
+
+def _masked_mean(x, mask):
+    """Mean of ``x (C, k, ...)`` over the k rows where ``mask (C, k)``."""
+    w = mask.astype(x.dtype).reshape(mask.shape + (1,) * (x.ndim - 2))
+    return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
+
+
+def _take(tree, idx):
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+
+
+def make_conditions(
+    db: Database,
+    dyn: Dynamics,
+    robot: Robot,
+    settings,
+    basis: BasisSettings,
+    grid: TimeGrid,
+    key: jax.Array,
+) -> Conditions:
+    """Draw the m conditions of ``settings`` (``EvolutionSettings``) from human demonstrations.
+
+    ``db``: the database; only its valid human rows are used. ``key``: the only randomness.
+    Raises ``UserError`` when fewer than m candidates qualify.
+    """
+    m = settings.conditions
+    lo, hi = sampling_box(db, settings.region_margin)
+    n_cand = m * settings.candidates_per_condition
+    q = jnp.asarray(db.q)
+    duration = jnp.asarray(db.duration)
+    human = jnp.asarray(human_mask(db))
+    lower, upper = jnp.asarray(robot.lower, q.dtype), jnp.asarray(robot.upper, q.dtype)
+
+    @jax.jit  # two jitted stages around the data-dependent choice (eager PCA is ~100x slower)
+    def candidates(key, condition):
+        cand = jax.random.uniform(key, (n_cand, 3), q.dtype, lo, hi)
+        nb = select_neighbours(condition, human, cand, basis.neighbours, basis.radius, basis.w_pos)
+        final = q[nb.index, -1]  # (n_cand, k, J) the neighbours' final postures
+        ik = solve_ik(dyn, cand, final[:, 0], lower, upper, q_pref=_masked_mean(final, nb.mask))
+        return cand, nb, ik
+
+    @jax.jit
+    def finish(target, nb, qf, ik_error):
+        j = q.shape[-1]
+        if settings.duration is None:
+            dur = _masked_mean(duration[nb.index], nb.mask)
+        else:
+            dur = jnp.full((m,), settings.duration, q.dtype)
+        zeros = jnp.zeros((m, j), q.dtype)
+        rest = jnp.broadcast_to(jnp.asarray(robot.rest, q.dtype), (m, j))
+        boundary = Boundary(q0=rest, qf=qf, qd0=zeros, qdf=zeros, duration=dur)
+        ref_basis = pca_basis(q, duration, nb, INTERP_COMPONENTS)
+        ref = compile_interpolation(ref_basis, boundary, grid, n_components=INTERP_COMPONENTS)
+        f32 = jnp.float32  # fixed dtypes: checkpoints restore into `conditions_template`
+        return Conditions(
+            target=target.astype(f32),
+            boundary=jax.tree_util.tree_map(lambda a: a.astype(f32), boundary),
+            ik_error=ik_error.astype(f32),
+            n_human_inside=nb.n_inside.astype(jnp.int32),
+            human_q=ref.q.astype(f32),
+        )
+
+    cand, nb, ik = candidates(key, jnp.asarray(db.condition, q.dtype))
+    enough = np.asarray(nb.n_inside) >= settings.min_neighbours
+    reached = np.asarray(ik.pos_error) <= settings.ik_tolerance
+    chosen = np.flatnonzero(enough & reached)
+    if chosen.size < m:
+        raise UserError(
+            f"evolution.conditions: only {chosen.size} of {n_cand} candidate targets have "
+            f">= {settings.min_neighbours} demonstrations within {basis.radius} m and an IK "
+            f"posture within {settings.ik_tolerance} m ({int(enough.sum())} pass the first test); "
+            f"expected {m}: raise evolution.candidates_per_condition, lower "
+            f"evolution.min_neighbours or shrink evolution.region_margin"
+        )
+    idx = jnp.asarray(chosen[:m])  # candidates come in key order: the first m that qualify
+    return finish(cand[idx], _take(nb, idx), ik.q[idx], ik.pos_error[idx])
+
+
+def conditions_to_tree(c: Conditions) -> dict:
+    """Plain nested dict of numpy arrays (checkpoints)."""
+    out = {k: np.asarray(v) for k, v in c._asdict().items() if k != "boundary"}
+    out["boundary"] = {k: np.asarray(v) for k, v in c.boundary._asdict().items()}
+    return out
+
+
+def conditions_from_tree(tree: dict) -> Conditions:
+    """Inverse of `conditions_to_tree`."""
+    fields = {k: v for k, v in tree.items() if k != "boundary"}
+    return Conditions(boundary=Boundary(**tree["boundary"]), **fields)
+
+
+def conditions_template(m: int, t: int, j: int) -> dict:
+    """Zero arrays shaped like `conditions_to_tree` of m conditions (checkpoint restore)."""
+    f = np.float32
+    mj = np.zeros((m, j), f)
+    return {
+        "target": np.zeros((m, 3), f),
+        "ik_error": np.zeros(m, f),
+        "n_human_inside": np.zeros(m, np.int32),
+        "human_q": np.zeros((m, t, j), f),
+        "boundary": {"q0": mj, "qf": mj, "qd0": mj, "qdf": mj, "duration": np.zeros(m, f)},
+    }

@@ -1,0 +1,78 @@
+"""Forward kinematics and inverse dynamics of a robot, with a choice of backend (DESIGN 1).
+
+The torque objective of the optimisation compiler (Park et al. 2008, eq. 5) needs, at every
+sample of a primitive, ``tau = M(q) qdd + C(q, qd) qd + g(q)``; the conditions and the IK need the
+end-effector site pose. `make_dynamics` returns both as pure, un-jitted single-sample functions;
+callers vmap over samples and conditions and jit at the top.
+
+Backends (both return C MuJoCo's ``mj_inverse`` ``qfrc_inverse`` for the controlled dofs):
+  - ``"rnea"``: recursive Newton-Euler compiled from the ``mjModel`` into one fused JAX graph
+    (`dynamics_rnea`); hinge/slide joints, chains and trees. The fast path (tens of times MJX).
+  - ``"mjx"``: ``mujoco.mjx.inverse`` / ``mjx.kinematics`` (`dynamics_mjx`); the reference.
+Joints the robot does not control are held at ``qpos0``, at rest. With armature, damping or
+stiffness in the model both backends add ``armature*qdd + damping*qd + stiffness*(q - springref)``
+as ``mj_inverse`` does; the shipped models have none, and disable constraints and contacts, so
+the torque is the pure rigid-body one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from evojax_motion.errors import UserError
+
+if TYPE_CHECKING:  # annotations only: robot.py does not need to import first
+    from evojax_motion.robot import Robot
+
+BACKENDS = ("rnea", "mjx")
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: hashed by identity, usable as a jit static arg
+class Dynamics:
+    """A robot's kinematics and inverse dynamics as pure single-sample functions.
+
+    inverse: ``(q (J,), qd (J,), qdd (J,)) -> tau (J,)`` [N m or N], controlled joints only.
+    site_pose: ``q (J,) -> (pos (3,), rot (3, 3))`` of ``robot.site_name``, world frame.
+    body_positions: ``q (J,) -> (nbody, 3)`` world body origins (MuJoCo ``xpos``), for key points.
+    """
+
+    robot: Robot
+    backend: str
+    dtype: Any
+    inverse: Callable
+    site_pose: Callable
+    body_positions: Callable
+
+
+def make_dynamics(robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32) -> Dynamics:
+    """Build the `Dynamics` of `robot` with `backend` in `BACKENDS`, computing in `dtype`.
+
+    float64 needs jax x64 enabled both here and where the functions are traced
+    (``jax.enable_x64(True)`` context or the ``jax_enable_x64`` flag).
+    """
+    if backend not in BACKENDS:
+        raise UserError(f"dynamics: expected one of {BACKENDS}, got {backend!r}")
+    dtype = np.dtype(dtype)
+    if dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise UserError(f"dtype: expected float32 or float64, got {dtype}")
+    if jax.dtypes.canonicalize_dtype(dtype) != dtype:
+        raise UserError("dtype: float64 needs jax x64 enabled (jax.enable_x64(True))")
+    if backend == "rnea":
+        from evojax_motion.dynamics_rnea import make_rnea as make
+    else:  # lazily: importing mujoco.mjx is slow and noisy
+        from evojax_motion.dynamics_mjx import make_mjx as make
+    fns = make(robot, dtype)
+    return Dynamics(
+        robot=robot,
+        backend=backend,
+        dtype=dtype,
+        inverse=fns.inverse,
+        site_pose=fns.site_pose,
+        body_positions=fns.body_positions,
+    )

@@ -1,0 +1,304 @@
+"""One generation of the evolutionary algorithm over the primitive database (paper sec. 3.1, 4.3).
+
+Genetic operator: every condition c of the fixed set (``conditions.py``) is compiled by the
+movement compiler via optimisation (eq. 3-5) from a basis of its neighbours (eq. 6) in the current
+database; neighbour search sees the human originals and the survivors alike. Offspring that are not
+finite, leave the joint ranges or miss the boundary conditions (eq. 2) are discarded (sec. 3.1, 5).
+Survivor selection (sec. 4.3): slot ``n_human + c`` keeps the cheaper of incumbent and offspring by
+the eq. 5 cost, a batched argmin; the human originals (slots ``0 .. n_human-1``) never change.
+
+``make_generation_step`` closes over the static pieces (dynamics, time grid, settings) and returns
+one jitted function ``step(db, conditions, generation) -> (db, GenerationStats)``: the whole
+generation (neighbours, PCA, optimisation, selection, metrics) is a single XLA program.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from evojax_motion.database import Database
+
+SLOT_LAYOUT = "slot n_human + c belongs to condition c"
+
+
+def _check(ok: bool, name: str, expected: str, value) -> None:
+    if not ok:
+        raise ValueError(f"{name}: expected {expected}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class EvolutionSettings:
+    """The evolution's settings; defaults are the paper's (sec. 4.2-4.4).
+
+    - ``conditions``: size m of the fixed condition set (paper: 300).
+    - ``generations``: generations to run (paper: 10).
+    - ``region_margin`` [m]: targets are drawn uniformly from the bounding box of the
+      demonstrations' hand positions grown by this margin on every side (negative shrinks it) ...
+    - ``min_neighbours``: ... and kept only where at least this many demonstrations lie within
+      ``basis.radius`` (so each condition has a basis: where the robot will work).
+    - ``candidates_per_condition``: oversampling factor of that rejection sampling.
+    - ``ik_tolerance`` [m]: a target whose human-like IK posture misses it by more is rejected.
+    - ``duration`` [s]: duration of every condition's motion; ``null`` = its neighbours' mean.
+    - ``bc_tolerance`` [rad], ``bc_velocity_tolerance`` [rad/s]: offspring whose start/end joint
+      angles (velocities) miss the boundary conditions by more are discarded. Velocities get a
+      looser bound: the demonstrations start and end at rest, so the velocity rows of the BC
+      system are numerically degenerate (``compile_interp``) and are met only to the finite
+      difference accuracy of the time grid (a few 1e-2 rad/s at T = 32).
+    """
+
+    conditions: int = 300
+    generations: int = 10
+    region_margin: float = 0.0
+    min_neighbours: int = 5
+    candidates_per_condition: int = 8
+    ik_tolerance: float = 0.005
+    duration: float | None = None
+    bc_tolerance: float = 1e-3
+    bc_velocity_tolerance: float = 0.1
+
+    def __post_init__(self):
+        _check(self.conditions >= 1, "conditions", "an integer >= 1", self.conditions)
+        _check(self.generations >= 1, "generations", "an integer >= 1", self.generations)
+        _check(
+            abs(self.region_margin) < 10.0, "region_margin", "|margin| < 10 m", self.region_margin
+        )
+        _check(self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours)
+        _check(
+            self.candidates_per_condition >= 1,
+            "candidates_per_condition",
+            "an integer >= 1",
+            self.candidates_per_condition,
+        )
+        _check(self.ik_tolerance > 0, "ik_tolerance", "a number > 0 [m]", self.ik_tolerance)
+        _check(
+            self.duration is None or self.duration > 0,
+            "duration",
+            "null or a number > 0 [s]",
+            self.duration,
+        )
+        _check(self.bc_tolerance > 0, "bc_tolerance", "a number > 0 [rad]", self.bc_tolerance)
+        _check(
+            self.bc_velocity_tolerance > 0,
+            "bc_velocity_tolerance",
+            "a number > 0 [rad/s]",
+            self.bc_velocity_tolerance,
+        )
+
+
+def replace_settings(settings: EvolutionSettings, **changes) -> EvolutionSettings:
+    """``dataclasses.replace`` that keeps the validation (for tests and sweeps)."""
+    return dataclasses.replace(settings, **changes)
+
+
+class Selection(NamedTuple):
+    """Result of survivor selection over the m evolved slots."""
+
+    q: jnp.ndarray  # (m, T, J)
+    cost: jnp.ndarray  # (m,)
+    valid: jnp.ndarray  # (m,) bool
+    generation: jnp.ndarray  # (m,) int32, generation that produced the survivor
+    replaced: jnp.ndarray  # (m,) bool, the offspring won
+
+
+def select_survivors(
+    q_inc, cost_inc, valid_inc, gen_inc, q_off, cost_off, accept_off, generation
+) -> Selection:
+    """Per slot, keep the cheaper of incumbent and offspring (paper sec. 3.1 step 5).
+
+    A batched argmin over ``(incumbent, offspring)`` costs, where an empty slot or a rejected
+    offspring counts as ``+inf``; ties keep the incumbent (argmin takes the first), so a slot's
+    cost never increases and an equal-cost offspring never churns the database.
+    ``q_*: (m, T, J)``, ``cost_*, valid_inc, accept_off: (m,)``, ``gen_inc: (m,)``.
+    """
+    inf = jnp.asarray(jnp.inf, cost_inc.dtype)
+    pair = jnp.stack(
+        [jnp.where(valid_inc, cost_inc, inf), jnp.where(accept_off, cost_off, inf)], axis=0
+    )
+    winner = jnp.argmin(pair, axis=0)  # 0 = incumbent, 1 = offspring
+    replaced = (winner == 1) & accept_off
+    return Selection(
+        q=jnp.where(replaced[:, None, None], q_off, q_inc),
+        cost=jnp.where(replaced, cost_off, cost_inc),
+        valid=valid_inc | replaced,
+        generation=jnp.where(replaced, jnp.asarray(generation, gen_inc.dtype), gen_inc),
+        replaced=replaced,
+    )
+
+
+def write_slots(db: Database, n_human: int, sel: Selection) -> Database:
+    """The database with its evolved slots ``n_human:`` replaced; human rows are passed through
+    untouched (concatenation of the original slice: bit-for-bit the same)."""
+
+    def cat(old, new):
+        return jnp.concatenate([old[:n_human], new.astype(old.dtype)], axis=0)
+
+    return db._replace(
+        q=cat(db.q, sel.q),
+        cost=cat(db.cost, sel.cost),
+        valid=cat(db.valid, sel.valid),
+        generation=cat(db.generation, sel.generation),
+    )
+
+
+class GenerationStats(NamedTuple):
+    """Scalars of one generation (``metrics.jsonl``; see `make_generation_step`)."""
+
+    offspring_cost_mean: jnp.ndarray
+    db_cost_mean: jnp.ndarray
+    torque_sum_mean: jnp.ndarray
+    human_deviation_deg: jnp.ndarray
+    n_replaced: jnp.ndarray
+    n_rejected_nonfinite: jnp.ndarray
+    n_rejected_limits: jnp.ndarray
+    n_rejected_bc: jnp.ndarray
+    n_valid: jnp.ndarray
+    n_short: jnp.ndarray
+    bc_residual_max: jnp.ndarray
+    bc_velocity_residual_max: jnp.ndarray
+    converged_fraction: jnp.ndarray
+
+
+def init_evolved_slots(humans: Database, conditions) -> Database:
+    """Database of capacity ``n_human + m``: the human rows, then one empty slot per condition.
+
+    Slot ``n_human + c`` gets condition c's target and duration (``valid=False`` until first
+    filled, ``origin=EVOLVED``, ``cost=inf``). ``humans``: only valid human rows.
+    """
+    from evojax_motion.database import EVOLVED
+
+    t, j = humans.q.shape[1:]
+    m = conditions.target.shape[0]
+    dtype = humans.q.dtype
+
+    def cat(a, b):
+        return jnp.concatenate([jnp.asarray(a), jnp.asarray(b).astype(jnp.asarray(a).dtype)])
+
+    return Database(
+        q=cat(humans.q, jnp.zeros((m, t, j), dtype)),
+        duration=cat(humans.duration, conditions.boundary.duration),
+        condition=cat(humans.condition, conditions.target),
+        cost=cat(humans.cost, jnp.full((m,), jnp.inf)),
+        origin=cat(humans.origin, jnp.full((m,), EVOLVED)),
+        valid=cat(humans.valid, jnp.zeros((m,), bool)),
+        generation=cat(humans.generation, jnp.zeros((m,), jnp.int32)),
+    )
+
+
+def _masked_mean(x, mask):
+    n = jnp.sum(mask)
+    return jnp.where(n > 0, jnp.sum(jnp.where(mask, x, 0.0)) / jnp.maximum(n, 1), jnp.nan)
+
+
+def boundary_errors(grid, q, boundary):
+    """Largest start/end errors per primitive: ``(position [rad] (m,), velocity [rad/s] (m,))``.
+
+    ``q: (m, T, J)``; NaN anywhere gives NaN (which every ``<=`` test rejects).
+    """
+    from evojax_motion.timegrid import derivatives
+
+    qd, _ = derivatives(grid, q, boundary.duration)
+    pos = jnp.stack([q[:, 0] - boundary.q0, q[:, -1] - boundary.qf])
+    vel = jnp.stack([qd[:, 0] - boundary.qd0, qd[:, -1] - boundary.qdf])
+
+    def worst(e):
+        bad = ~jnp.all(jnp.isfinite(e), axis=(0, 2))
+        return jnp.where(bad, jnp.nan, jnp.max(jnp.abs(e), axis=(0, 2)))
+
+    return worst(pos), worst(vel)
+
+
+def rms_deviation_deg(q, q_ref):
+    """RMS joint-angle difference in degrees per primitive. ``q, q_ref: (m, T, J)`` -> ``(m,)``."""
+    return jnp.degrees(jnp.sqrt(jnp.mean((q - q_ref) ** 2, axis=(1, 2))))
+
+
+def make_generation_step(
+    dyn,
+    grid,
+    lower,
+    upper,
+    n_human: int,
+    basis_settings,
+    optim_settings,
+    settings: EvolutionSettings,
+):
+    """One generation as one jitted function ``step(db, conditions, generation)``.
+
+    ``db``: ``Database`` of capacity ``n_human + m`` (`init_evolved_slots`); ``conditions``:
+    ``Conditions`` (m); ``generation``: int32 scalar, the index this step produces (1, 2, ...);
+    traced, so every generation reuses one compilation.
+    Returns ``(db, GenerationStats)`` where the stats mean:
+
+    - ``offspring_cost_mean``: eq. 5 cost averaged over the accepted offspring;
+    - ``db_cost_mean``: eq. 5 cost averaged over the filled evolved slots after selection;
+    - ``torque_sum_mean``: the paper's Fig. 5 quantity, time-averaged |tau| summed over joints
+      [N m] (``objective.torque_sum``), averaged over the filled evolved slots;
+    - ``human_deviation_deg``: RMS joint-angle difference [deg] between each filled evolved slot
+      and its condition's human-only interpolation, averaged over the slots;
+    - ``n_replaced``: slots whose offspring won; ``n_rejected_*``: offspring discarded as
+      non-finite, outside the joint ranges (but finite), missing the boundary conditions (but
+      finite and within range); ``n_valid``: filled evolved slots; ``n_short``: conditions with
+      fewer than k neighbours within the radius;
+    - ``bc_residual_max`` [rad], ``bc_velocity_residual_max`` [rad/s]: largest start/end
+      joint-angle (velocity) error among the finite offspring;
+    - ``converged_fraction``: offspring whose optimiser reported convergence.
+    """
+    from evojax_motion.basis import pca_basis, select_neighbours
+    from evojax_motion.compile_optim import make_optimisation_compiler
+    from evojax_motion.objective import torque_sum, trajectory_torques
+
+    compile_opt = make_optimisation_compiler(dyn, grid, lower, upper, optim_settings)
+    n_components = optim_settings.n_components
+
+    def step(db: Database, conditions, generation):
+        nb = select_neighbours(
+            db.condition,
+            db.valid,
+            conditions.target,
+            basis_settings.neighbours,
+            basis_settings.radius,
+            basis_settings.w_pos,
+        )
+        basis = pca_basis(db.q, db.duration, nb, n_components)
+        off = compile_opt(basis, conditions.boundary)
+
+        finite = off.finite & jnp.isfinite(off.cost)
+        in_range = finite & off.within_limits
+        pos_err, vel_err = boundary_errors(grid, off.q, conditions.boundary)
+        meets_bc = (pos_err <= settings.bc_tolerance) & (vel_err <= settings.bc_velocity_tolerance)
+        accept = in_range & meets_bc
+
+        sl = slice(n_human, None)
+        sel = select_survivors(
+            db.q[sl], db.cost[sl], db.valid[sl], db.generation[sl],
+            off.q.astype(db.q.dtype), off.cost.astype(db.cost.dtype), accept, generation,
+        )  # fmt: skip
+        new_db = write_slots(db, n_human, sel)
+
+        dur = new_db.duration[sl]
+        tau = jax.vmap(lambda q, d: trajectory_torques(dyn, grid, q, d))(sel.q, dur)
+        tsum = jax.vmap(lambda t: torque_sum(grid, t))(tau)
+        dev = rms_deviation_deg(sel.q, conditions.human_q)
+        stats = GenerationStats(
+            offspring_cost_mean=_masked_mean(off.cost, accept),
+            db_cost_mean=_masked_mean(sel.cost, sel.valid),
+            torque_sum_mean=_masked_mean(tsum, sel.valid),
+            human_deviation_deg=_masked_mean(dev, sel.valid),
+            n_replaced=jnp.sum(sel.replaced).astype(jnp.int32),
+            n_rejected_nonfinite=jnp.sum(~finite).astype(jnp.int32),
+            n_rejected_limits=jnp.sum(finite & ~in_range).astype(jnp.int32),
+            n_rejected_bc=jnp.sum(in_range & ~accept).astype(jnp.int32),
+            n_valid=jnp.sum(sel.valid).astype(jnp.int32),
+            n_short=jnp.sum(nb.short).astype(jnp.int32),
+            bc_residual_max=jnp.max(jnp.where(finite, pos_err, 0.0)),
+            bc_velocity_residual_max=jnp.max(jnp.where(finite, vel_err, 0.0)),
+            converged_fraction=jnp.mean(jnp.asarray(off.converged, jnp.float32)),
+        )
+        return new_db, stats
+
+    return jax.jit(step)

@@ -1,0 +1,645 @@
+"""Online motion generation from the learned database (paper sec. 3.2 and 4.5), within joint limits.
+
+"The humanoid generates a human-like movement corresponding to a given task in real time by
+linearly interpolating the primitive movements in the developed database." One query, for a
+target hand position ``p*`` (optionally a duration D and a start posture q0):
+
+1. neighbours: the k primitives of the database nearest to ``p*`` (eq. 6, ``basis``);
+2. final posture ``qf``: human-like IK of ``p*`` (``ik.solve_ik``) started from the nearest
+   neighbour's final posture and pulled, in the redundant directions, toward the neighbours' mean
+   final posture; every iterate stays inside the joint limits (as ``conditions`` does offline);
+3. movement compiler via interpolation (eq. 1-2, ``compile_interp``) on the neighbours' PCA
+   basis with ``q(0) = q0``, ``q(1) = qf``, ``qd(0) = qd(1) = 0`` and D = the neighbours' mean
+   duration unless given;
+4. joint limits (the paper's open problem, sec. 5: "some motions ... violated some of the joint
+   limits"): see below;
+5. ``qd, qdd`` from the time grid and ``tau`` by inverse dynamics (eq. 4), the eq. 5 cost.
+
+Everything is one jitted function, vmapped over any number of targets (`make_online_generator`).
+
+Joint limits. Per joint the BC system of eq. 2 is ``A x = b`` in the coefficients of eq. 1; with
+``K_lim`` components (default 4, the optimisation compiler's basis) its solutions are
+``x = x_ls + N z`` (``compile_interp.solve_boundary``: ``N`` spans the null space, in prior units
+of the neighbours' spread). Any z keeps the BCs, so limits are enforced by the smallest such z:
+
+    min_z 0.5 |z|^2 + 0.5 rho sum_t [relu(q_t - hi_t)^2 + relu(lo_t - q_t)^2],  q = q_eq1 + G z
+
+(``G = basis functions @ N``, ``(T, K_lim)``), a convex piecewise quadratic solved by a few
+semi-smooth Newton steps (each a ``K_lim x K_lim`` solve). The bounds ``lo_t, hi_t`` sit
+``limit_margin`` inside the limits, relaxed toward the safe path below near the ends (where the
+null directions vanish). The penalty leaves a violation of ~1e-4 of the original one, absorbed
+by the margin. A guarantee on top: a joint still outside after that is blended toward the
+minimum-jerk path ``q0 -> qf`` (inside the limits whenever q0 and qf are, and with the same
+rest-to-rest BCs), ``q = (1 - lam) q + lam q_mj`` with the smallest ``lam in [0, 1]`` that brings
+every sample inside (closed form). So an online motion never leaves ``[lower, upper]``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compile_interp import (
+    Boundary,
+    basis_functions,
+    boundary_residual,
+    compile_interpolation,
+    solve_boundary,
+)
+from evojax_motion.database import Database
+from evojax_motion.dynamics import Dynamics
+from evojax_motion.errors import UserError
+from evojax_motion.ik import solve_ik
+from evojax_motion.objective import cost_from_torques
+from evojax_motion.robot import Robot
+from evojax_motion.timegrid import TimeGrid, derivatives
+
+
+def _check(ok: bool, name: str, expected: str, value) -> None:
+    if not ok:
+        raise ValueError(f"{name}: expected {expected}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class OnlineSettings:
+    """Settings of the online query (static under jit).
+
+    - ``n_components``: principal components of the interpolation (paper eq. 1: 3).
+    - ``limit_components``: components whose BC null space the limit projection moves in (>=
+      ``n_components``; 4 = the optimisation compiler's eq. 3 basis).
+    - ``min_neighbours``: a target is inside the learned region when at least this many valid
+      primitives lie within ``BasisSettings.radius`` of it (<= ``BasisSettings.neighbours``).
+    - ``ik_iters``: IK iterations (started from the nearest neighbour's final posture).
+    - ``reach_tolerance`` [m]: a target whose IK posture misses it by more is unreachable.
+    - ``limit_margin`` [rad]: the limit projection aims this far inside the joint limits.
+    - ``projection_iters``: semi-smooth Newton steps of the limit projection.
+    - ``penalty``: weight of a limit violation relative to the null-space step (scale-free).
+    """
+
+    n_components: int = 3
+    limit_components: int = 4
+    min_neighbours: int = 4
+    ik_iters: int = 20
+    reach_tolerance: float = 1e-3
+    limit_margin: float = 2e-3
+    projection_iters: int = 8
+    penalty: float = 1e4
+
+    def __post_init__(self):
+        _check(self.n_components >= 1, "n_components", "an integer >= 1", self.n_components)
+        _check(
+            self.limit_components >= self.n_components,
+            "limit_components",
+            f"an integer >= n_components ({self.n_components})",
+            self.limit_components,
+        )
+        _check(self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours)
+        _check(self.ik_iters >= 1, "ik_iters", "an integer >= 1", self.ik_iters)
+        _check(
+            self.reach_tolerance > 0, "reach_tolerance", "a number > 0 [m]", self.reach_tolerance
+        )
+        _check(self.limit_margin >= 0, "limit_margin", "a number >= 0 [rad]", self.limit_margin)
+        _check(
+            self.projection_iters >= 0, "projection_iters", "an integer >= 0", self.projection_iters
+        )
+        _check(self.penalty > 0, "penalty", "a number > 0", self.penalty)
+
+
+class OnlineResult(NamedTuple):
+    """B generated motions (arrays; numpy after `generate_motions`).
+
+    t: (B, T) time from the motion's start [s]; q, qd, qdd, tau: (B, T, J) [rad, rad/s, rad/s^2,
+    N m]; duration: (B,) [s]; target: (B, 3) [m]; q_final: (B, J) IK posture [rad];
+    hand_error: (B,) |hand(q[-1]) - target| [m]; ik_error: (B,) the IK's miss [m] (~ distance
+    to the kinematically reachable set); region_gap: (B,) how far the target lies outside the
+    learned region (0 inside) [m]; n_inside: (B,) valid primitives within the radius;
+    limit_excess: (B,) largest limit violation of plain eq. 1 interpolation [rad] (0 = none);
+    fallback: (B,) the minimum-jerk blend was needed after the projection;
+    bc_residual: (B,) BC error of q; cost: (B,) eq. 5 cost [N^2 m^2 s];
+    reachable: (B,) inside the learned region and reached by the IK;
+    ok: (B,) reachable, finite and inside the joint limits (a usable motion).
+    """
+
+    t: jnp.ndarray
+    q: jnp.ndarray
+    qd: jnp.ndarray
+    qdd: jnp.ndarray
+    tau: jnp.ndarray
+    duration: jnp.ndarray
+    target: jnp.ndarray
+    q_final: jnp.ndarray
+    hand_error: jnp.ndarray
+    ik_error: jnp.ndarray
+    region_gap: jnp.ndarray
+    n_inside: jnp.ndarray
+    limit_excess: jnp.ndarray
+    fallback: jnp.ndarray
+    bc_residual: jnp.ndarray
+    cost: jnp.ndarray
+    reachable: jnp.ndarray
+    ok: jnp.ndarray
+
+
+class Reach(NamedTuple):
+    """Whether points can be targets: the learned region and the kinematics. All ``(P,)``.
+
+    depth: ``radius - d_m`` [m], d_m the distance to the ``min_neighbours``-th nearest valid
+    condition: >= 0 inside the learned region; region_gap: ``max(-depth, 0)`` [m] (inf when the
+    database has too few valid entries); ik_error: the human-like IK's miss [m];
+    q_final: (P, J) its posture [rad]; hand: (P, 3) where it puts the hand [m];
+    natural_duration: the neighbours' mean duration [s]; n_inside: valid primitives within the
+    radius; reachable: region_gap == 0 and ik_error <= ``reach_tolerance``.
+    """
+
+    depth: jnp.ndarray
+    region_gap: jnp.ndarray
+    ik_error: jnp.ndarray
+    q_final: jnp.ndarray
+    hand: jnp.ndarray
+    natural_duration: jnp.ndarray
+    n_inside: jnp.ndarray
+    reachable: jnp.ndarray
+
+
+def _masked_mean(x, mask):
+    """Mean of ``x (C, k, ...)`` over the rows where ``mask (C, k)``."""
+    w = mask.astype(x.dtype).reshape(mask.shape + (1,) * (x.ndim - 2))
+    return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
+
+
+def reach_query(
+    dyn: Dynamics,
+    db: Database,
+    points,
+    lower,
+    upper,
+    basis_settings: BasisSettings,
+    settings: OnlineSettings,
+):
+    """Steps 1-2 for ``points (P, 3)``: neighbours and the final posture. Pure, jittable.
+
+    ``db`` needs ``q (N, T, J)``, ``duration``, ``condition``, ``valid``. Returns
+    ``(Reach, Neighbours)``.
+    """
+    q_db = jnp.asarray(db.q)
+    points = jnp.asarray(points, q_db.dtype)
+    nb = select_neighbours(
+        jnp.asarray(db.condition, q_db.dtype),
+        jnp.asarray(db.valid),
+        points,
+        basis_settings.neighbours,
+        basis_settings.radius,
+        basis_settings.w_pos,
+    )
+    final = q_db[nb.index, -1]  # (P, k, J) the neighbours' final postures
+    ik = solve_ik(
+        dyn,
+        points,
+        final[:, 0],
+        lower,
+        upper,
+        q_pref=_masked_mean(final, nb.mask),
+        iters=settings.ik_iters,
+        tol=settings.reach_tolerance,
+    )
+    # The learned region: >= min_neighbours primitives within the radius. d_m is 1-Lipschitz in
+    # the point, so the gap is a lower bound of the distance to the region (exact near a cluster).
+    kth = nb.distance[:, settings.min_neighbours - 1] / basis_settings.w_pos
+    depth = jnp.where(jnp.isfinite(kth), basis_settings.radius - kth, -jnp.inf)
+    gap = jnp.maximum(-depth, 0.0)
+    dur = _masked_mean(jnp.asarray(db.duration, q_db.dtype)[nb.index], nb.mask)
+    reach = Reach(
+        depth=depth,
+        region_gap=gap,
+        ik_error=ik.pos_error,
+        q_final=ik.q,
+        hand=jax.vmap(lambda q: dyn.site_pose(q)[0])(ik.q),
+        natural_duration=jnp.where(jnp.any(nb.mask, axis=1), dur, jnp.nan),
+        n_inside=nb.n_inside,
+        reachable=(gap <= 0.0) & (ik.pos_error <= settings.reach_tolerance),
+    )
+    return reach, nb
+
+
+def make_reach_checker(
+    robot: Robot,
+    dyn: Dynamics,
+    basis_settings: BasisSettings | None = None,
+    settings: OnlineSettings | None = None,
+) -> Callable:
+    """Jitted ``check(db, points (P, 3)) -> Reach``: cheap (no PCA, no dynamics)."""
+    basis_settings, settings = _settings(basis_settings, settings)
+    lower, upper = _limits(robot)
+
+    @jax.jit
+    def check(db, points):
+        return reach_query(dyn, db, points, lower, upper, basis_settings, settings)[0]
+
+    return check
+
+
+def minimum_jerk(grid: TimeGrid, q0, qf) -> jnp.ndarray:
+    """Rest-to-rest minimum-jerk paths ``q0 (C, J) -> qf (C, J)``: ``(C, T, J)``.
+
+    Monotone between q0 and qf, so inside any box that holds both ends.
+    """
+    s = jnp.asarray(grid.s, q0.dtype)
+    shape = s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
+    return q0[:, None, :] + (qf - q0)[:, None, :] * shape[None, :, None]
+
+
+def _joint_projection(a, g, lo, hi, iters: int, penalty: float):
+    """Smallest null-space step that brings one joint inside ``[lo_t, hi_t]``.
+
+    ``a (T,)`` trajectory, ``g (T, n)`` null-space directions, ``lo, hi (T,)``. -> ``(T,)``.
+    """
+    n = g.shape[1]
+    # Scale-free penalty: relative to the directions' size, so one setting fits every joint.
+    rho = penalty / jnp.maximum(jnp.mean(jnp.sum(g * g, axis=0)), 1e-12)
+    eye = jnp.eye(n, dtype=a.dtype)
+
+    def step(_, z):
+        x = a + g @ z
+        up, dn = x > hi, x < lo
+        bound = jnp.where(up, hi, jnp.where(dn, lo, 0.0))
+        ga = jnp.where((up | dn)[:, None], g, 0.0)
+        h = eye + rho * ga.T @ ga
+        return jnp.linalg.solve(h, rho * ga.T @ (bound - a))
+
+    z = jax.lax.fori_loop(0, iters, step, jnp.zeros(n, a.dtype))
+    return a + g @ z
+
+
+def _blend_inside(a, safe, lower, upper):
+    """Smallest ``lam`` per joint with ``(1 - lam) a + lam safe`` inside the limits; applied.
+
+    ``a, safe (T, J)``, ``safe`` inside ``[lower, upper] (J,)``. -> ``(T, J)``, ``lam (J,)``.
+    """
+    over = jnp.where(a > upper, (a - upper) / jnp.maximum(a - safe, 1e-12), 0.0)
+    under = jnp.where(a < lower, (lower - a) / jnp.maximum(safe - a, 1e-12), 0.0)
+    lam = jnp.clip(jnp.max(jnp.maximum(over, under), axis=0), 0.0, 1.0)
+    q = (1.0 - lam) * a + lam * safe
+    return jnp.clip(q, lower, upper), lam  # clip only removes rounding (<= 1 ulp)
+
+
+def enforce_limits(
+    basis,
+    boundary: Boundary,
+    grid: TimeGrid,
+    q,
+    lower,
+    upper,
+    settings: OnlineSettings,
+):
+    """Step 4: ``q (C, T, J)`` moved inside ``[lower, upper] (J,)`` keeping the BCs (see module).
+
+    ``basis`` must hold ``settings.limit_components`` components. Returns ``(q (C, T, J),
+    limit_excess (C,), fallback (C,))``: the largest violation of the input and whether the
+    minimum-jerk blend was needed.
+    """
+    excess = jnp.max(jnp.maximum(q - upper, lower - q), axis=(1, 2))
+    outside = jnp.any((q > upper) | (q < lower), axis=1, keepdims=True)  # (C, 1, J)
+    proj = functools.partial(
+        _joint_projection, iters=settings.projection_iters, penalty=settings.penalty
+    )
+    per_joint = jax.vmap(proj, in_axes=(1, 0, 1, 1), out_axes=1)  # over J
+
+    def project(q):
+        k = settings.limit_components
+        sol = solve_boundary(basis, boundary, grid, k)
+        funcs = basis_functions(basis, k)  # (C, J, K+1, T)
+        g = jnp.einsum("cjnt,cjnm->cjtm", funcs, sol.null)  # (C, J, T, K) null directions
+        safe = minimum_jerk(grid, boundary.q0, boundary.qf)
+        # Near the ends the null directions vanish: never ask for more than the safe path has.
+        lo = jnp.minimum(lower + settings.limit_margin, safe)
+        hi = jnp.maximum(upper - settings.limit_margin, safe)
+        # Only joints that were outside move: an inside joint keeps its eq. 1 trajectory.
+        q = jnp.where(outside, jax.vmap(per_joint)(q, g, lo, hi), q)
+        q, lam = jax.vmap(_blend_inside, in_axes=(0, 0, None, None))(q, safe, lower, upper)
+        return q, jnp.any(lam > 0, axis=1)
+
+    # Most motions are inside already: skip the work (a select, not a branch, under vmap).
+    q, fallback = jax.lax.cond(
+        jnp.any(outside), project, lambda q: (q, jnp.zeros(q.shape[0], bool)), q
+    )
+    return q, jnp.maximum(excess, 0.0), fallback
+
+
+def build_problem(
+    dyn: Dynamics,
+    db: Database,
+    targets,
+    duration,
+    q_start,
+    lower,
+    upper,
+    basis_settings: BasisSettings,
+    settings: OnlineSettings,
+):
+    """Steps 1-2 and the BCs: ``(basis, boundary, reach)`` for ``targets (C, 3)``. Pure.
+
+    ``duration (C,)`` [s] (NaN: the neighbours' mean), ``q_start (C, J)`` inside the limits.
+    ``basis`` holds ``settings.limit_components`` components (enough for eq. 1 and eq. 3).
+    """
+    dtype = jnp.asarray(db.q).dtype
+    reach, nb = reach_query(dyn, db, targets, lower, upper, basis_settings, settings)
+    basis = pca_basis(
+        jnp.asarray(db.q), jnp.asarray(db.duration, dtype), nb, settings.limit_components
+    )
+    duration = jnp.asarray(duration, dtype)
+    zeros = jnp.zeros_like(reach.q_final)
+    boundary = Boundary(
+        q0=jnp.asarray(q_start, dtype),
+        qf=reach.q_final,
+        qd0=zeros,
+        qdf=zeros,
+        duration=jnp.where(jnp.isnan(duration), reach.natural_duration, duration),
+    )
+    return basis, boundary, reach
+
+
+def finish_motion(
+    dyn: Dynamics,
+    grid: TimeGrid,
+    lower,
+    upper,
+    settings: OnlineSettings,
+    basis,
+    boundary: Boundary,
+    reach: Reach,
+    targets,
+) -> OnlineResult:
+    """Steps 3-5: interpolation (eq. 1-2), joint limits, derivatives, torques. Pure."""
+    interp = compile_interpolation(basis, boundary, grid, settings.n_components)
+    q, excess, fallback = enforce_limits(basis, boundary, grid, interp.q, lower, upper, settings)
+    dur = boundary.duration
+    qd, qdd = derivatives(grid, q, dur)
+    tau = jax.vmap(jax.vmap(dyn.inverse))(q, qd, qdd)
+    cost = jax.vmap(functools.partial(cost_from_torques, grid))(tau, dur)
+    hand = jax.vmap(lambda x: dyn.site_pose(x)[0])(q[:, -1])
+    target = jnp.asarray(targets, q.dtype)
+    hand_error = jnp.linalg.norm(hand - target, axis=-1)
+    finite = jnp.all(jnp.isfinite(tau), axis=(1, 2)) & jnp.all(jnp.isfinite(qdd), axis=(1, 2))
+    inside = jnp.all((q >= lower) & (q <= upper), axis=(1, 2))
+    return OnlineResult(
+        t=jnp.asarray(grid.s, q.dtype)[None, :] * dur[:, None],
+        q=q,
+        qd=qd,
+        qdd=qdd,
+        tau=tau,
+        duration=dur,
+        target=target,
+        q_final=reach.q_final,
+        hand_error=hand_error,
+        ik_error=reach.ik_error,
+        region_gap=reach.region_gap,
+        n_inside=reach.n_inside,
+        limit_excess=excess,
+        fallback=fallback,
+        bc_residual=boundary_residual(grid, q, boundary),
+        cost=cost,
+        reachable=reach.reachable,
+        ok=reach.reachable & finite & inside & jnp.isfinite(hand_error),
+    )
+
+
+def online_query(
+    dyn: Dynamics,
+    grid: TimeGrid,
+    lower,
+    upper,
+    basis_settings: BasisSettings,
+    settings: OnlineSettings,
+    db: Database,
+    targets,
+    duration,
+    q_start,
+) -> OnlineResult:
+    """The whole online query (steps 1-5) for ``targets (C, 3)``; pure (jit it at the top).
+
+    ``duration (C,)`` [s] (NaN: the neighbours' mean), ``q_start (C, J)`` inside the limits.
+    """
+    lower = jnp.asarray(lower, jnp.asarray(db.q).dtype)
+    upper = jnp.asarray(upper, lower.dtype)
+    basis, boundary, reach = build_problem(
+        dyn, db, targets, duration, q_start, lower, upper, basis_settings, settings
+    )
+    return finish_motion(dyn, grid, lower, upper, settings, basis, boundary, reach, targets)
+
+
+def _settings(basis_settings, settings):
+    basis_settings = basis_settings or BasisSettings()
+    settings = settings or OnlineSettings()
+    if settings.min_neighbours > basis_settings.neighbours:
+        raise UserError(
+            f"online.min_neighbours: expected <= basis.neighbours ({basis_settings.neighbours}), "
+            f"got {settings.min_neighbours}"
+        )
+    return basis_settings, settings
+
+
+def _limits(robot: Robot):
+    return np.asarray(robot.lower, np.float32), np.asarray(robot.upper, np.float32)
+
+
+def make_online_generator(
+    robot: Robot,
+    dyn: Dynamics,
+    grid: TimeGrid,
+    basis_settings: BasisSettings | None = None,
+    settings: OnlineSettings | None = None,
+) -> Callable:
+    """The jitted query ``generate(db, targets (C, 3), duration (C,), q_start (C, J))``.
+
+    Returns `OnlineResult` (device arrays). ``db`` is an argument (not a constant) so one compiled
+    function serves the learned and the human-only database alike; it recompiles only for a new
+    C or database shape.
+    """
+    basis_settings, settings = _settings(basis_settings, settings)
+    fn = functools.partial(
+        online_query,
+        dyn,
+        grid,
+        *_limits(robot),
+        basis_settings,
+        settings,
+    )
+    return jax.jit(fn)
+
+
+def online_database(db: Database) -> Database:
+    """The database as device arrays (float32), ready to pass to a generator repeatedly."""
+    return Database(*(jnp.asarray(a) for a in db))
+
+
+def check_query(robot: Robot, targets, duration=None, q_start=None):
+    """Validate a user's query; returns ``targets (C, 3)``, ``duration (C,)``, ``q_start (C, J)``.
+
+    ``duration``: None (natural), a number or ``(C,)`` [s] > 0. ``q_start``: None (``robot.rest``),
+    ``(J,)`` or ``(C, J)`` inside the joint limits. Raises `UserError` naming the field.
+    """
+    from evojax_motion.basis import validate_targets
+
+    targets = validate_targets(targets, "target")
+    c, j = targets.shape[0], robot.n_joints
+    if duration is None:
+        dur = np.full(c, np.nan, np.float32)
+    else:
+        dur = np.broadcast_to(np.asarray(duration, np.float64), (c,)).copy()
+        if not (np.isfinite(dur).all() and (dur > 0).all()):
+            raise UserError(f"duration: expected a number > 0 [s], got {duration!r}")
+        if (dur > 60.0).any():
+            raise UserError(f"duration: expected at most 60 s, got {float(dur.max()):g}")
+        dur = dur.astype(np.float32)
+    if q_start is None:
+        q0 = np.broadcast_to(np.asarray(robot.rest, np.float32), (c, j)).copy()
+    else:
+        q0 = np.asarray(q_start, np.float64)
+        if q0.shape not in ((j,), (c, j)):
+            raise UserError(f"start posture: expected {j} joint angles [rad], got {q0.shape}")
+        q0 = np.broadcast_to(q0, (c, j))
+        if not np.isfinite(q0).all():
+            raise UserError("start posture: expected finite joint angles, got NaN/inf")
+        outside = (q0 < robot.lower) | (q0 > robot.upper)
+        if outside.any():
+            row, col = np.argwhere(outside)[0]
+            raise UserError(
+                f"start posture: joint {robot.joint_names[col]!r} = {q0[row, col]:.4g} rad is "
+                f"outside its limits [{robot.lower[col]:.4g}, {robot.upper[col]:.4g}]"
+            )
+        q0 = q0.astype(np.float32)
+    return targets, dur, q0
+
+
+def to_numpy(result: OnlineResult) -> OnlineResult:
+    """Device arrays -> numpy (one transfer)."""
+    return OnlineResult(*jax.device_get(tuple(result)))
+
+
+def check_points(check: Callable, db, points: np.ndarray, chunk: int) -> Reach:
+    """`make_reach_checker`'s function over any number of points, in fixed-size chunks (one
+    compiled shape)."""
+    n = points.shape[0]
+    pad = (-n) % chunk
+    padded = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)]).astype(np.float32)
+    parts = [jax.device_get(check(db, padded[i : i + chunk])) for i in range(0, n + pad, chunk)]
+    return Reach(*(np.concatenate(a)[:n] for a in zip(*parts)))
+
+
+def nearest_reachable(
+    check: Callable, db: Database, target, chunk: int = 64
+) -> tuple[np.ndarray, float]:
+    """A reachable point near ``target (3,)`` and its distance [m] (host-level, for messages and
+    ``--nearest``).
+
+    Candidates: where the IK puts the hand, and the farthest reachable point on the segment from
+    the nearest reachable database condition toward the target (two rounds of ``chunk`` samples).
+    Returns the candidate closest to the target (an upper bound of the true distance).
+    Raises `UserError` when no database condition is reachable.
+    """
+    target = np.asarray(target, np.float32).reshape(3)
+    cond = np.asarray(db.condition)[np.asarray(db.valid)]
+    anchors = cond[check_points(check, db, cond, chunk).reachable]
+    if anchors.shape[0] == 0:
+        raise UserError("database: no valid primitive's condition is reachable; nothing is near")
+    anchor = anchors[np.argmin(np.linalg.norm(anchors - target, axis=1))]
+    lo, hi = 0.0, 1.0
+    for _ in range(2):  # coarse, then fine between the last good and the first bad sample
+        lam = np.linspace(lo, hi, chunk)
+        pts = anchor + lam[:, None] * (target - anchor)
+        ok = check_points(check, db, pts, chunk).reachable
+        good = np.flatnonzero(ok)
+        k = int(good.max()) if good.size else 0
+        lo, hi = lam[k], lam[min(k + 1, chunk - 1)]
+    best = anchor + lo * (target - anchor)
+    cand = check_points(check, db, target[None], chunk)
+    hand = check_points(check, db, cand.hand, chunk)
+    if hand.reachable[0]:
+        h = cand.hand[0]
+        if np.linalg.norm(h - target) < np.linalg.norm(best - target):
+            best = h
+    return best.astype(np.float32), float(np.linalg.norm(best - target))
+
+
+@dataclass(frozen=True, eq=False)
+class OnlineModel:
+    """Everything a query needs, loaded once: the robot rebuilt from the database file, its
+    dynamics, the database (numpy ``db`` and device ``db_device``), the time grid and settings.
+    ``source``: the database file; ``settings_source``: the config the basis settings came from
+    ("defaults" if none)."""
+
+    robot: Robot
+    dyn: Dynamics
+    db: Database
+    db_device: Database
+    meta: object
+    grid: TimeGrid
+    basis_settings: BasisSettings
+    settings: OnlineSettings
+    source: str
+    settings_source: str
+
+
+def resolve_database_path(path) -> Path:
+    """A database ``.npz``, or a run directory holding ``db_final.npz``."""
+    path = Path(path)
+    if path.is_dir():
+        final = path / "db_final.npz"
+        if not final.is_file():
+            raise UserError(f"{path}: a directory without db_final.npz; expected a database .npz")
+        return final
+    return path
+
+
+def load_online_model(
+    path,
+    backend: str = "rnea",
+    settings: OnlineSettings | None = None,
+    basis_settings: BasisSettings | None = None,
+) -> OnlineModel:
+    """Load a database file (or run directory) for online queries.
+
+    The robot is rebuilt from the MJCF stored in the file. Basis settings: ``basis_settings`` if
+    given, else the ``basis`` section of a ``config.yaml`` beside the file (a run directory's),
+    else `BasisSettings` defaults. Raises `UserError` for unreadable files.
+    """
+    from evojax_motion.database import load_database
+    from evojax_motion.dynamics import make_dynamics
+    from evojax_motion.robot import robot_from_mjcf_text
+    from evojax_motion.timegrid import make_time_grid
+
+    path = resolve_database_path(path)
+    db, meta = load_database(path)
+    robot = robot_from_mjcf_text(
+        meta.robot_name, meta.mjcf, meta.joint_names, meta.site_name, source=f"{path} (robot)"
+    )
+    settings_source = "given"
+    if basis_settings is None:
+        cfg_path = path.parent / "config.yaml"
+        if cfg_path.is_file():
+            from evojax_motion.config import load_config
+
+            basis_settings, settings_source = load_config(cfg_path).basis, str(cfg_path)
+        else:
+            basis_settings, settings_source = BasisSettings(), "defaults"
+    basis_settings, settings = _settings(basis_settings, settings)
+    return OnlineModel(
+        robot=robot,
+        dyn=make_dynamics(robot, backend=backend),
+        db=db,
+        db_device=online_database(db),
+        meta=meta,
+        grid=make_time_grid(db.q.shape[1]),
+        basis_settings=basis_settings,
+        settings=settings,
+        source=str(path),
+        settings_source=settings_source,
+    )

@@ -1,0 +1,302 @@
+"""The online subcommands of ``evojax-motion``: ``generate`` and ``catch`` (paper sec. 3.2, 4).
+
+    evojax-motion generate --db FILE --target X Y Z [--duration S] --out traj.csv
+    evojax-motion catch --db FILE --ball PX PY PZ VX VY VZ --out traj.csv
+
+``--db`` is a database ``.npz`` or a run directory (its ``db_final.npz``; the basis settings then
+come from its ``config.yaml``). The output's format follows its suffix or ``--format``
+(`export`). An unreachable target or an uncatchable ball is a `UserError` (one line ``error:
+...``, exit status 2) that says how far the reachable region is; ``--nearest`` takes the nearest
+reachable point instead. Nothing is written unless the motion is finite and inside the joint
+limits.
+
+The lead's ``cli.build_parser`` calls `add_online_parsers` on its subparsers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+
+from evojax_motion.errors import UserError
+
+CACHE_ENV = "EVOJAX_MOTION_JAX_CACHE"  # a directory, or "off"
+
+
+def enable_compile_cache() -> None:
+    """Keep XLA's compiled queries on disk: a second ``generate`` starts in about a second.
+
+    ``$EVOJAX_MOTION_JAX_CACHE`` (default ``~/.cache/evojax-motion/jax``; ``off`` disables).
+    """
+    where = os.environ.get(CACHE_ENV, str(Path.home() / ".cache" / "evojax-motion" / "jax"))
+    if where.lower() == "off":
+        return
+    import jax
+
+    try:
+        Path(where).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return  # a read-only home: run without the cache
+    jax.config.update("jax_compilation_cache_dir", where)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", required=True, help="database .npz or run directory (db_final.npz)")
+    p.add_argument("--out", required=True, help="trajectory file (.csv, .npz or .json)")
+    p.add_argument("--format", choices=("csv", "npz", "json"), default=None)
+    p.add_argument("--nearest", action="store_true", help="use the nearest reachable point")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    p.add_argument("--dynamics", choices=("rnea", "mjx"), default="rnea", help="torque backend")
+
+
+def add_online_parsers(subparsers) -> None:
+    """Add ``generate`` and ``catch`` to an argparse subparsers object."""
+    p = subparsers.add_parser(
+        "generate", help="a motion to a hand target from a learned database (online process)"
+    )
+    _common(p)
+    p.add_argument("--target", required=True, nargs=3, type=float, metavar=("X", "Y", "Z"))
+    p.add_argument("--duration", type=float, default=None, help="[s]; default: neighbours'")
+    p.add_argument(
+        "--start", nargs="+", type=float, default=None, metavar="Q", help="start posture [rad]"
+    )
+    p.set_defaults(func=cmd_generate)
+
+    p = subparsers.add_parser("catch", help="catch a thrown ball: plan the catch and the motion")
+    _common(p)
+    p.add_argument(
+        "--ball",
+        required=True,
+        nargs=6,
+        type=float,
+        metavar=("PX", "PY", "PZ", "VX", "VY", "VZ"),
+        help="release position [m] and velocity [m/s]",
+    )
+    p.add_argument("--drag", type=float, default=0.0, help="quadratic drag k [1/m] (0: none)")
+    p.add_argument("--reaction", type=float, default=None, help="reaction time [s]")
+    p.add_argument("--horizon", type=float, default=None, help="flight time examined [s]")
+    p.set_defaults(func=cmd_catch)
+
+
+def _check_out(args) -> str:
+    from evojax_motion.export import resolve_format
+
+    fmt = resolve_format(args.out, args.format)
+    if Path(args.out).exists() and not args.force:
+        raise UserError(f"{args.out}: already exists (pass --force to overwrite)")
+    return fmt
+
+
+def _vec(x) -> list[float]:
+    return [round(float(v), 4) for v in np.asarray(x).ravel()]
+
+
+def _print_table(rows: dict) -> None:
+    width = max(len(k) for k in rows)
+    for key, value in rows.items():
+        print(f"{key:<{width}}  {value}")
+
+
+def _write(args, fmt, model, motion, i: int, meta: dict) -> Path:
+    from evojax_motion.export import make_trajectory_data, write_trajectory
+
+    if not bool(motion.ok[i]):
+        raise UserError(
+            "the generated motion is not usable (non-finite or outside the joint limits); "
+            "nothing written"
+        )
+    data = make_trajectory_data(
+        motion.t[i],
+        motion.q[i],
+        motion.qd[i],
+        motion.qdd[i],
+        motion.tau[i],
+        model.robot.joint_names,
+        meta,
+    )
+    return write_trajectory(args.out, data, fmt)
+
+
+def _motion_meta(model, motion, i: int) -> dict:
+    return {
+        "database": model.source,
+        "robot": model.robot.name,
+        "site": model.robot.site_name,
+        "target": _vec(motion.target[i]),
+        "duration": float(motion.duration[i]),
+        "cost": float(motion.cost[i]),
+        "hand_error": float(motion.hand_error[i]),
+        "limit_excess_before_projection": float(motion.limit_excess[i]),
+        "limit_fallback": bool(motion.fallback[i]),
+    }
+
+
+def _limits_line(motion, i: int) -> str:
+    excess = float(motion.limit_excess[i])
+    if excess <= 0:
+        return "inside (plain interpolation was inside)"
+    how = "minimum-jerk blend" if bool(motion.fallback[i]) else "null-space projection"
+    return f"inside ({how}; plain interpolation exceeded them by {excess:.4f} rad)"
+
+
+def _generate_one(model, target, duration, q_start):
+    from evojax_motion.online import check_query, make_online_generator, to_numpy
+
+    targets, dur, q0 = check_query(model.robot, target, duration, q_start)
+    gen = make_online_generator(
+        model.robot, model.dyn, model.grid, model.basis_settings, model.settings
+    )
+    return to_numpy(gen(model.db_device, targets, dur, q0))
+
+
+def cmd_generate(args) -> int:
+    """``evojax-motion generate``: one motion to ``--target``; exit 0, or `UserError`."""
+    from evojax_motion.online import load_online_model, make_reach_checker, nearest_reachable
+
+    fmt = _check_out(args)
+    enable_compile_cache()
+    model = load_online_model(args.db, backend=args.dynamics)
+    target = np.asarray(args.target, np.float32)
+    motion = _generate_one(model, target, args.duration, args.start)
+    note = None
+    if not bool(motion.reachable[0]):
+        check = make_reach_checker(model.robot, model.dyn, model.basis_settings, model.settings)
+        point, dist = nearest_reachable(check, model.db_device, target)
+        where = (
+            f"target {_vec(target)} m is outside the reachable region: the nearest reachable "
+            f"point is {_vec(point)} m, {dist:.3f} m away"
+        )
+        if not args.nearest:
+            raise UserError(f"{where}; pass --nearest to use it")
+        note = f"{where}; using it (--nearest)"
+        motion = _generate_one(model, point, args.duration, args.start)
+        if not bool(motion.reachable[0]):
+            raise UserError(f"{where}, but it could not be reached either; nothing written")
+    meta = _motion_meta(model, motion, 0)
+    meta["requested_target"] = _vec(target)
+    out = _write(args, fmt, model, motion, 0, meta)
+    if note:
+        print(f"note: {note}")
+    given = args.duration is not None
+    _print_table(
+        {
+            "target": f"{_vec(motion.target[0])} m",
+            "duration": f"{float(motion.duration[0]):.3f} s"
+            + ("" if given else " (neighbours' mean)"),
+            "hand error": f"{float(motion.hand_error[0]) * 1e3:.3f} mm",
+            "cost (eq. 5)": f"{float(motion.cost[0]):.4g} N^2 m^2 s",
+            "peak |tau|": f"{float(np.abs(motion.tau[0]).max()):.3f} N m",
+            "joint limits": _limits_line(motion, 0),
+            "neighbours": f"{int(motion.n_inside[0])} within the radius ({model.settings_source})",
+            "written to": f"{out} ({fmt})",
+        }
+    )
+    return 0
+
+
+def _catch_settings(args):
+    import dataclasses
+
+    from evojax_motion.catching import CatchSettings
+
+    changes = {"drag": args.drag}
+    if args.reaction is not None:
+        changes["reaction_time"] = args.reaction
+    if args.horizon is not None:
+        changes["horizon"] = args.horizon
+        changes["samples"] = max(2, round(args.horizon / 0.01) + 1)
+    try:
+        return dataclasses.replace(CatchSettings(), **changes)
+    except ValueError as e:
+        raise UserError(f"catch: {e}") from None
+
+
+def cmd_catch(args) -> int:
+    """``evojax-motion catch``: plan the catch of ``--ball`` and write the motion."""
+    import jax
+
+    from evojax_motion.catching import explain_plan, make_catcher, validate_ball
+    from evojax_motion.online import load_online_model, make_reach_checker
+
+    fmt = _check_out(args)
+    p0, v0 = validate_ball(args.ball)
+    catch = _catch_settings(args)
+    enable_compile_cache()
+    model = load_online_model(args.db, backend=args.dynamics)
+    catcher = make_catcher(
+        model.robot, model.dyn, model.grid, model.basis_settings, model.settings, catch
+    )
+    q0 = np.asarray(model.robot.rest, np.float32)[None]
+    plan, motion = jax.device_get(catcher(model.db_device, p0, v0, q0))
+    line = explain_plan(plan, 0)
+    note = None
+    if not bool(plan.feasible[0]):
+        if not args.nearest:
+            raise UserError(f"{line}; pass --nearest to move toward the ball anyway")
+        check = make_reach_checker(model.robot, model.dyn, model.basis_settings, model.settings)
+        motion, note = _nearest_attempt(model, check, catch, plan)
+    meta = _motion_meta(model, motion, 0)
+    meta.update(
+        ball=_vec(np.concatenate([p0[0], v0[0]])),
+        caught=bool(plan.feasible[0]),
+        time_axis="seconds after release",
+    )
+    if bool(plan.feasible[0]):
+        meta.update(
+            catch_time=float(plan.catch_time[0]),
+            time_margin=float(plan.time_margin[0]),
+            depth=float(plan.depth[0]),
+        )
+    out = _write(args, fmt, model, motion, 0, meta)
+    print(line if note is None else f"note: {line}; {note}")
+    _print_table(
+        {
+            "motion": f"{float(motion.t[0, 0]):.3f} -> {float(motion.t[0, -1]):.3f} s "
+            "after release",
+            "hand at": f"{_vec(motion.target[0])} m",
+            "hand error": f"{float(motion.hand_error[0]) * 1e3:.3f} mm",
+            "cost (eq. 5)": f"{float(motion.cost[0]):.4g} N^2 m^2 s",
+            "joint limits": _limits_line(motion, 0),
+            "written to": f"{out} ({fmt})",
+        }
+    )
+    return 0
+
+
+def _nearest_attempt(model, check, catch, plan):
+    """``--nearest`` for an uncatchable ball: move toward it as well as the arm can.
+
+    Too early: to the reachable sample with the best time margin, as fast as allowed (arriving
+    ``time_short`` late). Out of reach: to the reachable point nearest the ball's closest
+    approach, timed to arrive then if possible. Returns ``(motion, note)``.
+    """
+    from evojax_motion.online import nearest_reachable
+
+    if bool(plan.passes_region[0]):
+        k = int(plan.late_index[0])
+        point = np.asarray(plan.ball[0, k], np.float32)
+        d_nat = float(plan.natural_duration[0, k])
+        note = f"moving to {_vec(point)} m as fast as allowed (not a catch)"
+    else:
+        k = int(plan.closest_index[0])
+        point, dist = nearest_reachable(check, model.db_device, plan.ball[0, k])
+        d_nat = _natural_duration(check, model, point)
+        note = f"moving to the reachable point {_vec(point)} m, {dist:.3f} m from its path"
+    t_ball = float(plan.times[0, k])
+    duration = float(np.clip(t_ball - catch.reaction_time, d_nat / catch.speedup, d_nat))
+    start = max(catch.reaction_time, t_ball - duration)
+    motion = _generate_one(model, point, duration, None)
+    if not bool(motion.reachable[0]):
+        raise UserError(f"the nearest point {_vec(point)} m could not be reached; nothing written")
+    return motion._replace(t=motion.t + start), note
+
+
+def _natural_duration(check, model, point) -> float:
+    """The natural (neighbours' mean) duration at ``point (3,)`` [s]."""
+    from evojax_motion.online import check_points
+
+    reach = check_points(check, model.db_device, np.asarray(point, np.float32)[None], 64)
+    return float(reach.natural_duration[0])

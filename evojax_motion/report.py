@@ -1,0 +1,872 @@
+"""The report of a training run: the paper's figures from a run folder, and one self-contained HTML
+page (``evojax-motion report RUN_DIR [--out DIR]``).
+
+Files written (paper figure; run files needed, in brackets the optional ones):
+
+- ``fig4_basis.png``: one condition's neighbours (one joint's trajectories) and their first four
+  principal components, human and learned database (Fig. 4; db_initial, config [db_final]);
+- ``fig5_costs.png``: mean torque sum and eq. 5 cost per generation (Fig. 5; metrics);
+- ``tradeoff.png``: eq. 5 cost against ``human_deviation_deg`` per generation (metrics);
+- ``fig8_generations.png``: the condition's joint angles, first vs last generation (Fig. 8;
+  db_gen1, db_final [db_initial, config]);
+- ``fig10_interp_vs_optim.png``: interpolation (eq. 1-2) vs optimisation (eq. 3-5) from the last
+  database (Fig. 10; db_final, config);
+- ``fig7_snapshots.png``: snapshots, front and side, first vs last generation (Fig. 7; db_gen1,
+  db_final);
+- ``fig9_snapshots.png``: the same for interpolation vs optimisation (Fig. 9; db_final, config);
+- ``catch.gif``: an online catch (sec. 3.2) on the last database (db_final, config);
+- ``report.html``: all of the above, images inlined (base64).
+
+The condition is ``--condition`` (default: the config's ``train.plot_condition``; when its slot is
+empty in a database another is chosen and the page says so). Fig. 10, Fig. 9 and the catch use the
+last database *without the condition's own evolved primitive* (leave-one-out), so that the
+interpolation compiler sees what it would for a new target and cannot copy the optimised answer.
+The boundary conditions are the evolved slot's (rest start, IK final posture, rest to rest).
+
+Snapshots come from MuJoCo's offscreen renderer when an OpenGL backend works (`render.gl_status`),
+else from the matplotlib stick-figure fallback, labelled as such; the plots never need GL.
+
+Exit status of the command: 0 every figure written; 1 some run file missing or unreadable (each
+named on stderr and in the page) and only the figures that do not need it written; 2 ``RUN_DIR``
+does not exist or holds no run (no ``config.yaml``, ``metrics.jsonl`` or database), or a bad option.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from evojax_motion.errors import UserError
+
+# The run folder's files (train.py writes them; names repeated here so that reading a report needs
+# no JAX import before it is needed).
+CONFIG_FILE, METRICS_FILE, SUMMARY_FILE = "config.yaml", "metrics.jsonl", "summary.json"
+DB_INITIAL, DB_GEN1, DB_FINAL = "db_initial.npz", "db_gen1.npz", "db_final.npz"
+RUN_FILES = (CONFIG_FILE, METRICS_FILE, DB_INITIAL, DB_GEN1, DB_FINAL)
+REPORT_DIR, HTML_FILE = "report", "report.html"
+INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant (as conditions.py)
+BASIS_COMPONENTS = 4  # Fig. 4: "their first four dominant principal components"
+
+# figure file -> (title, run files it needs, caption)
+FIGURES: dict[str, tuple[str, tuple[str, ...], str]] = {
+    "fig4_basis.png": (
+        "Neighbours and principal components (Fig. 4)",
+        (DB_INITIAL, CONFIG_FILE),
+        "Left: one joint's trajectories in the primitives selected for the condition (eq. 6, "
+        "within the basis radius). Right: their first four principal components (unit norm), "
+        "with the share of the neighbours' variance each explains. Top: the human demonstrations; "
+        "bottom: the learned database (human and evolved primitives).",
+    ),
+    "fig5_costs.png": (
+        "Cost per generation (Fig. 5)",
+        (METRICS_FILE,),
+        "Mean torque sum (time-averaged |tau| summed over joints, the paper's Fig. 5 quantity) "
+        "and mean eq. 5 cost of the evolved slots after each generation.",
+    ),
+    "tradeoff.png": (
+        "Optimality vs human-likeness",
+        (METRICS_FILE,),
+        "Per generation: mean eq. 5 cost against the RMS joint-angle deviation from each "
+        "condition's human-only interpolation. Down is cheaper, right is less human-like.",
+    ),
+    "fig8_generations.png": (
+        "First vs last generation (Fig. 8)",
+        (DB_GEN1, DB_FINAL),
+        "Joint angles of the condition's primitive in the first (black dashed) and last (red "
+        "solid) generation's database, with the human-only interpolation (blue dotted).",
+    ),
+    "fig10_interp_vs_optim.png": (
+        "Interpolation vs optimisation (Fig. 10)",
+        (DB_FINAL, CONFIG_FILE),
+        "Both compilers on the last database (leave-one-out) with the same boundary conditions: "
+        "interpolation, eq. 1-2 (black dashed), and optimisation, eq. 3-5 (red solid).",
+    ),
+    "fig7_snapshots.png": (
+        "Snapshots, first vs last generation (Fig. 7)",
+        (DB_GEN1, DB_FINAL),
+        "Front and side views of the condition's motion in the first and the last generation's "
+        "database; the ball marks the catch point.",
+    ),
+    "fig9_snapshots.png": (
+        "Snapshots, interpolation vs optimisation (Fig. 9)",
+        (DB_FINAL, CONFIG_FILE),
+        "The two motions of Fig. 10, front and side.",
+    ),
+    "catch.gif": (
+        "An online catch",
+        (DB_FINAL, CONFIG_FILE),
+        "The online query (sec. 3.2: neighbours, human-like IK, interpolation within the joint "
+        "limits) for the condition's catch point on the last database (leave-one-out); the "
+        "ball's flight is a picture aid.",
+    ),
+}
+
+
+class RunData(NamedTuple):
+    """What could be read from a run folder; None where a file is missing or unreadable."""
+
+    run_dir: Path
+    config: Any  # evojax_motion.config.Config
+    metrics: list[dict] | None
+    summary: dict | None
+    db_initial: Any  # (Database, DatabaseMeta)
+    db_gen1: Any
+    db_final: Any
+    problems: dict[str, str]  # file name -> what is wrong
+
+
+@dataclass
+class Report:
+    """The outcome of `make_report`: written ``figures`` (name -> path), ``skipped`` figures
+    (name -> why), file ``problems`` (name -> what), the ``renderer`` used, notes, the page."""
+
+    out_dir: Path
+    html: Path | None = None
+    figures: dict[str, Path] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    problems: dict[str, str] = field(default_factory=dict)
+    renderer: str = "-"
+    gl_message: str = ""
+    condition: int | None = None
+    notes: list[str] = field(default_factory=list)
+    captions: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        return not self.problems and not self.skipped
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------------- reading
+
+
+def _read_metrics(path: Path) -> list[dict]:
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise UserError(f"{path}: line {n}: not JSON ({e.msg})") from None
+        if not isinstance(row, dict) or "generation" not in row:
+            raise UserError(f"{path}: line {n}: expected an object with a 'generation' field")
+        rows.append(row)
+    if not rows:
+        raise UserError(f"{path}: holds no generation yet")
+    return rows
+
+
+def load_run(run_dir: str | Path) -> RunData:
+    """Read everything a report can use from ``run_dir``; missing or unreadable files become
+    ``problems``. Raises `UserError` when ``run_dir`` does not exist or holds none of the run's
+    files (`RUN_FILES`)."""
+    from evojax_motion.config import load_config
+    from evojax_motion.database import load_database
+
+    run = Path(run_dir)
+    if not run.is_dir():
+        what = "is a file, not a run directory" if run.exists() else "no such directory"
+        raise UserError(f"{run}: {what}")
+    if not any((run / name).is_file() for name in RUN_FILES):
+        raise UserError(
+            f"{run}: holds no training run (none of {', '.join(RUN_FILES)}); "
+            "expected the --out folder of `evojax-motion train`"
+        )
+    problems: dict[str, str] = {}
+
+    def attempt(name, reader):
+        path = run / name
+        if not path.is_file():
+            problems[name] = f"{path}: missing"
+            return None
+        try:
+            return reader(path)
+        except UserError as e:
+            problems[name] = str(e)
+        except (OSError, ValueError) as e:
+            problems[name] = f"{path}: unreadable ({e})"
+        return None
+
+    summary = None
+    if (run / SUMMARY_FILE).is_file():  # optional: written at the end of a run
+        try:
+            summary = json.loads((run / SUMMARY_FILE).read_text())
+        except (OSError, json.JSONDecodeError):
+            summary = None
+    return RunData(
+        run_dir=run,
+        config=attempt(CONFIG_FILE, load_config),
+        metrics=attempt(METRICS_FILE, _read_metrics),
+        summary=summary,
+        db_initial=attempt(DB_INITIAL, load_database),
+        db_gen1=attempt(DB_GEN1, load_database),
+        db_final=attempt(DB_FINAL, load_database),
+        problems=problems,
+    )
+
+
+# ------------------------------------------------------------------------------ the context
+
+
+class Context(NamedTuple):
+    """Shared objects for the figures of one condition (built once)."""
+
+    robot: Any
+    dyn: Any  # None without a config
+    grid: Any
+    n_human: int
+    condition: int  # index in the condition set
+    slot: int  # database row of its evolved primitive
+    target: np.ndarray  # (3,) [m]
+    duration: float  # [s]
+    boundary: Any  # compile_interp.Boundary of one condition
+
+
+def _n_human(db) -> int:
+    from evojax_motion.database import HUMAN
+
+    return int(np.sum(np.asarray(db.origin) == HUMAN))
+
+
+def _pick_condition(data: RunData, requested: int | None, notes: list[str]) -> tuple[int, int]:
+    """``(condition, slot)``: the requested one, or the first whose slot is filled in every
+    database read. Raises `UserError` for an index out of range."""
+    dbs = [x[0] for x in (data.db_gen1, data.db_final) if x is not None]
+    ref = dbs[-1] if dbs else data.db_initial[0]
+    n_human = _n_human(ref)
+    m = ref.q.shape[0] - n_human
+    if m <= 0:
+        raise UserError(f"{data.run_dir}: its databases hold no evolved slot (no condition)")
+    default = data.config.train.plot_condition if data.config is not None else 0
+    c = default if requested is None else requested
+    if not 0 <= c < m:
+        raise UserError(f"--condition: expected an index in 0..{m - 1}, got {c}")
+    filled = np.ones(m, bool)
+    for db in dbs:
+        filled &= np.asarray(db.valid[n_human:])
+    if dbs and not filled[c]:
+        if not filled.any():
+            notes.append("no condition has an evolved primitive in every database")
+            return c, n_human + c
+        new = int(np.flatnonzero(filled)[0])
+        notes.append(f"condition {c} has no evolved primitive in every database; shown: {new}")
+        c = new
+    return c, n_human + c
+
+
+def _context(data: RunData, requested: int | None, notes: list[str]) -> Context:
+    from evojax_motion.compile_interp import Boundary
+    from evojax_motion.render import robot_from_meta
+    from evojax_motion.timegrid import make_time_grid
+
+    pair = data.db_final or data.db_gen1 or data.db_initial
+    db, meta = pair
+    robot = robot_from_meta(meta, source=f"{data.run_dir} (robot of the database)")
+    dyn = None
+    if data.config is not None:
+        from evojax_motion.dynamics import make_dynamics
+
+        dyn = make_dynamics(robot, backend=data.config.dynamics)
+    c, slot = _pick_condition(data, requested, notes)
+    q = np.asarray(db.q[slot], np.float32)
+    j = q.shape[1]
+    dur = float(db.duration[slot])
+    if bool(db.valid[slot]):
+        q0, qf = q[0], q[-1]
+    else:  # an empty slot: rest to the IK posture is unknown; rest to rest keeps plots possible
+        q0 = qf = np.asarray(robot.rest, np.float32)
+    zeros = np.zeros((1, j), np.float32)
+    boundary = Boundary(
+        q0=q0[None], qf=qf[None], qd0=zeros, qdf=zeros, duration=np.asarray([dur], np.float32)
+    )
+    return Context(
+        robot=robot,
+        dyn=dyn,
+        grid=make_time_grid(q.shape[0]),
+        n_human=_n_human(db),
+        condition=c,
+        slot=slot,
+        target=np.asarray(db.condition[slot], np.float64),
+        duration=dur,
+        boundary=boundary,
+    )
+
+
+def _neighbour_basis(db, target, basis_settings, n_components: int, exclude=None):
+    """``(Neighbours, Basis)`` of one target on ``db`` (row ``exclude`` left out)."""
+    import jax.numpy as jnp
+
+    from evojax_motion.basis import pca_basis, select_neighbours
+
+    valid = np.asarray(db.valid).copy()
+    if exclude is not None:
+        valid[exclude] = False
+    nb = select_neighbours(
+        jnp.asarray(db.condition),
+        jnp.asarray(valid),
+        jnp.asarray(target, jnp.float32)[None],
+        basis_settings.neighbours,
+        basis_settings.radius,
+        basis_settings.w_pos,
+    )
+    basis = pca_basis(jnp.asarray(db.q), jnp.asarray(db.duration), nb, n_components)
+    return nb, basis
+
+
+def _interpolate(db, ctx: Context, basis_settings, exclude=None) -> np.ndarray:
+    """Eq. 1-2 trajectory ``(T, J)`` of the condition on ``db``."""
+    from evojax_motion.compile_interp import compile_interpolation
+
+    _, basis = _neighbour_basis(db, ctx.target, basis_settings, INTERP_COMPONENTS, exclude)
+    out = compile_interpolation(basis, ctx.boundary, ctx.grid, n_components=INTERP_COMPONENTS)
+    return np.asarray(out.q[0])
+
+
+def _cost(ctx: Context, q) -> tuple[float, float]:
+    """Eq. 5 cost and torque sum [N m] of ``q (T, J)``."""
+    import jax.numpy as jnp
+
+    from evojax_motion.objective import cost_from_torques, torque_sum, trajectory_torques
+
+    tau = trajectory_torques(ctx.dyn, ctx.grid, jnp.asarray(q), ctx.duration)
+    return float(cost_from_torques(ctx.grid, tau, ctx.duration)), float(torque_sum(ctx.grid, tau))
+
+
+# ------------------------------------------------------------------------------ the figures
+
+
+def _save(fig, path: Path) -> Path:
+    from evojax_motion.plots import _save as save_png
+
+    return save_png(fig, path)
+
+
+def plot_basis(data: RunData, ctx: Context, path: Path, joint: str | None = None) -> Path:
+    """Fig. 4: a joint's trajectories in the condition's neighbours and their first four
+    principal components, for the human database and (if read) the learned one."""
+    import matplotlib.pyplot as plt
+
+    from evojax_motion.database import EVOLVED, humans_only
+
+    basis_settings = data.config.basis
+    rows = [("human demonstrations (generation 0)", humans_only(data.db_initial[0]))]
+    if data.db_final is not None:
+        gen = data.metrics[-1]["generation"] if data.metrics else "last"
+        rows.append((f"learned database (generation {gen})", data.db_final[0]))
+    names = list(ctx.robot.joint_names)
+    fits = [
+        (title, db, *_neighbour_basis(db, ctx.target, basis_settings, BASIS_COMPONENTS))
+        for title, db in rows
+    ]
+    if joint is None:  # the joint the human neighbours vary most in
+        k = int(np.argmax(np.asarray(fits[0][3].variance[0]).sum(axis=0)))
+    elif joint in names:
+        k = names.index(joint)
+    else:
+        raise UserError(f"--joint: expected one of {names}, got {joint!r}")
+    s = np.asarray(ctx.grid.s)
+    fig, axes = plt.subplots(len(fits), 2, figsize=(11, 3.4 * len(fits)), squeeze=False)
+    for r, (title, db, nb, basis) in enumerate(fits):
+        ax_l, ax_r = axes[r]
+        idx = np.asarray(nb.index[0])[np.asarray(nb.mask[0])]
+        x = np.degrees(np.asarray(db.q)[idx][:, :, k])  # (n, T)
+        evolved = np.asarray(db.origin)[idx] == EVOLVED
+        for i in range(len(idx)):
+            ax_l.plot(s, x[i], color="tab:red" if evolved[i] else "tab:blue", lw=1, alpha=0.8)
+        ax_l.plot(s, np.degrees(np.asarray(basis.mean[0, :, k])), "k--", lw=1.5, label="mean")
+        ax_l.plot([], [], color="tab:blue", label="human")
+        if evolved.any():
+            ax_l.plot([], [], color="tab:red", label="evolved")
+        ax_l.set_title(f"{title}: {len(idx)} neighbours, joint {names[k]}", fontsize=9)
+        ax_l.set_ylabel("angle [deg]")
+        ax_l.legend(fontsize=7)
+        centred = x - x.mean(axis=0)
+        total = float(np.sum(np.radians(centred) ** 2) / max(len(idx) - 1, 1))
+        var = np.asarray(basis.variance[0, :, k])
+        comps = np.asarray(basis.components[0, :, :, k])
+        for i in range(comps.shape[0]):
+            share = 100.0 * var[i] / total if total > 0 else 0.0
+            ax_r.plot(s, comps[i], lw=1.5, label=f"PC {i + 1} ({share:.0f} %)")
+        ax_r.set_title("first four principal components (unit norm)", fontsize=9)
+        ax_r.legend(fontsize=7)
+        for ax in (ax_l, ax_r):
+            ax.grid(alpha=0.3)
+            ax.set_xlabel("normalised time s")
+    fig.suptitle(
+        f"condition {ctx.condition}: catch point {np.round(ctx.target, 3).tolist()} m (Fig. 4)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_tradeoff(metrics: list[dict], path: Path) -> Path:
+    """Per generation: mean eq. 5 cost against mean ``human_deviation_deg``, in order."""
+    import matplotlib.pyplot as plt
+
+    gen = np.array([r["generation"] for r in metrics])
+
+    def col(name):
+        return np.array([np.nan if r.get(name) is None else r[name] for r in metrics], float)
+
+    dev, cost = col("human_deviation_deg"), col("db_cost_mean")
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    ax.plot(dev, cost, "-", color="0.6", lw=1, zorder=1)
+    sc = ax.scatter(dev, cost, c=gen, cmap="viridis", s=40, zorder=2)
+    for g, x, y in zip(gen, dev, cost):
+        if np.isfinite(x) and np.isfinite(y):
+            ax.annotate(str(g), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    fig.colorbar(sc, ax=ax, label="generation")
+    ax.set_xlabel("deviation from human-only interpolation [deg RMS]")
+    ax.set_ylabel(r"mean eq. 5 cost [N$^2$ m$^2$ s]")
+    ax.set_title("optimality vs human-likeness per generation")
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def _snapshot_figure(frames, row_labels, times, path: Path, title: str, renderer: str) -> Path:
+    """Grid of rendered frames ``(rows, cols, H, W, 3)`` with row labels and times [s]."""
+    import matplotlib.pyplot as plt
+
+    rows, cols, h, w, _ = frames.shape
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(cols * w / 100, rows * h / 100 + 0.6), squeeze=False
+    )
+    for r in range(rows):
+        for c in range(cols):
+            ax = axes[r, c]
+            ax.imshow(frames[r, c])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"t = {times[c]:.2f} s", fontsize=8)
+        axes[r, 0].set_ylabel(row_labels[r], fontsize=8)
+    fallback = "" if renderer.startswith("mujoco") else " [stick-figure fallback: no OpenGL]"
+    fig.suptitle(f"{title}{fallback}", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+class _Batch(NamedTuple):
+    q: np.ndarray  # (F, J)
+    cameras: list
+    balls: np.ndarray  # (F, 3)
+
+
+def _render_batches(
+    robot, batches: list[_Batch], renderer: str, width: int, height: int, floor: float
+):
+    """Render several frame lists in one renderer call; returns ``(list of images, renderer)``."""
+    from evojax_motion.render import render_motion
+
+    q = np.concatenate([b.q for b in batches])
+    cams = [
+        c for b in batches for c in (b.cameras * len(b.q) if len(b.cameras) == 1 else b.cameras)
+    ]
+    balls = np.concatenate([b.balls for b in batches])
+    frames = render_motion(robot, q, cams, balls, width, height, floor, renderer)
+    out, start = [], 0
+    for b in batches:
+        out.append(frames.images[start : start + len(b.q)])
+        start += len(b.q)
+    return out, frames.renderer
+
+
+def _optimise(data: RunData, ctx: Context) -> np.ndarray:
+    """Eq. 3-5 trajectory ``(T, J)`` of the condition on the last database (leave-one-out)."""
+    from evojax_motion.compile_optim import make_optimisation_compiler
+
+    cfg = data.config
+    settings = cfg.compiler
+    _, basis = _neighbour_basis(
+        data.db_final[0],
+        ctx.target,
+        cfg.basis,
+        max(settings.n_components, INTERP_COMPONENTS),
+        exclude=ctx.slot,
+    )
+    compile_opt = make_optimisation_compiler(
+        ctx.dyn, ctx.grid, ctx.robot.lower, ctx.robot.upper, settings
+    )
+    out = compile_opt(basis, ctx.boundary)
+    return np.asarray(out.q[0])
+
+
+def _online_catch(data: RunData, ctx: Context):
+    """The online query (`online.make_online_generator`) for the condition's catch point."""
+    from evojax_motion.online import make_online_generator, online_database, to_numpy
+
+    db = data.db_final[0]
+    valid = np.asarray(db.valid).copy()
+    valid[ctx.slot] = False
+    gen = make_online_generator(ctx.robot, ctx.dyn, ctx.grid, data.config.basis)
+    res = gen(
+        online_database(db._replace(valid=valid)),
+        np.asarray(ctx.target, np.float32)[None],
+        np.asarray([ctx.duration], np.float32),
+        np.asarray(ctx.robot.rest, np.float32)[None],
+    )
+    return to_numpy(res)
+
+
+def make_report(
+    run_dir: str | Path,
+    out_dir: str | Path | None = None,
+    condition: int | None = None,
+    joint: str | None = None,
+    renderer: str = "auto",
+    snapshots: int = 5,
+    gif_frames: int = 36,
+    animation: bool = True,
+    quiet: bool = False,
+) -> Report:
+    """Write the figures of the module table and ``report.html`` into ``out_dir`` (default
+    ``RUN_DIR/report``). Figures whose run files are missing are skipped and named in
+    ``Report.skipped``; raises `UserError` for a folder without a run or a bad option."""
+    from evojax_motion import render as rnd
+    from evojax_motion.plots import plot_costs
+
+    if renderer not in ("auto", "mujoco", "stick"):
+        raise UserError(f"--renderer: expected auto, mujoco or stick, got {renderer!r}")
+    if snapshots < 2:
+        raise UserError(f"--snapshots: expected an integer >= 2, got {snapshots}")
+    if gif_frames < 2:
+        raise UserError(f"--gif-frames: expected an integer >= 2, got {gif_frames}")
+    data = load_run(run_dir)
+    out = Path(out_dir) if out_dir is not None else data.run_dir / REPORT_DIR
+    rep = Report(out_dir=out, problems=dict(data.problems))
+    say = (lambda msg: None) if quiet else _log
+    for msg in rep.problems.values():
+        say(f"warning: {msg}")
+    if renderer != "stick":
+        status = rnd.gl_status()
+        rep.gl_message = status.message
+        if not status.available:
+            if renderer == "mujoco":
+                raise UserError(f"--renderer mujoco: {status.message}")
+            say(
+                f"warning: {status.message}; snapshots are matplotlib stick figures instead "
+                "(see docs/report.md)"
+            )
+    else:
+        rep.gl_message = "stick figures requested (--renderer stick)"
+    have = {name for name in RUN_FILES if name not in rep.problems}
+
+    def blocked(name: str) -> bool:
+        missing = [f for f in FIGURES[name][1] if f not in have]
+        if missing:
+            rep.skipped[name] = f"needs {', '.join(missing)}"
+            say(f"skipped {name}: needs {', '.join(missing)}")
+        return bool(missing)
+
+    def wrote(name: str, path: Path) -> None:
+        rep.figures[name] = path
+        say(f"wrote {path}")
+
+    out.mkdir(parents=True, exist_ok=True)
+    if not blocked("fig5_costs.png"):
+        wrote("fig5_costs.png", plot_costs(data.metrics, out / "fig5_costs.png"))
+    if not blocked("tradeoff.png"):
+        wrote("tradeoff.png", plot_tradeoff(data.metrics, out / "tradeoff.png"))
+
+    if any(x is not None for x in (data.db_initial, data.db_gen1, data.db_final)):
+        ctx = _context(data, condition, rep.notes)
+        rep.condition = ctx.condition
+        _condition_figures(
+            data,
+            ctx,
+            rep,
+            out,
+            joint,
+            renderer,
+            snapshots,
+            gif_frames,
+            animation,
+            blocked,
+            wrote,
+            say,
+        )
+    else:
+        for name in FIGURES:
+            if name not in rep.figures:
+                blocked(name)
+    for note in rep.notes:
+        say(f"note: {note}")
+    rep.captions = {name: FIGURES[name][2] for name in FIGURES}
+    rep.html = write_html(rep, data)
+    say(f"wrote {rep.html}")
+    return rep
+
+
+def _condition_figures(
+    data, ctx, rep, out, joint, renderer, snapshots, gif_frames, animation, blocked, wrote, say
+) -> None:
+    """The figures of one condition: Fig. 4, 8, 10, 7, 9 and the catch animation."""
+    from evojax_motion import render as rnd
+    from evojax_motion.plots import plot_joint_angles
+
+    robot = ctx.robot
+    target_txt = np.round(ctx.target, 3).tolist()
+    last_gen = data.metrics[-1]["generation"] if data.metrics else "last"
+    if not blocked("fig4_basis.png"):
+        wrote("fig4_basis.png", plot_basis(data, ctx, out / "fig4_basis.png", joint))
+
+    q_first = q_last = q_interp = q_opt = None
+    if data.db_gen1 is not None and data.db_final is not None:
+        q_first = np.asarray(data.db_gen1[0].q[ctx.slot])
+        q_last = np.asarray(data.db_final[0].q[ctx.slot])
+    if not blocked("fig8_generations.png"):
+        q_human = None
+        if data.db_initial is not None and data.config is not None:
+            from evojax_motion.database import humans_only
+
+            q_human = _interpolate(humans_only(data.db_initial[0]), ctx, data.config.basis)
+        wrote(
+            "fig8_generations.png",
+            plot_joint_angles(
+                q_first,
+                q_last,
+                ctx.duration,
+                robot.joint_names,
+                out / "fig8_generations.png",
+                q_human=q_human,
+                first_label="generation 1",
+                last_label=f"generation {last_gen}",
+                title=f"condition {ctx.condition}: catch point {target_txt} m (Fig. 8)",
+            ),
+        )
+
+    if data.db_final is not None and data.config is not None:
+        say("compiling the condition by interpolation and by optimisation (JAX compile) ...")
+        q_interp = _interpolate(data.db_final[0], ctx, data.config.basis, exclude=ctx.slot)
+        q_opt = _optimise(data, ctx)
+    if not blocked("fig10_interp_vs_optim.png"):
+        ci, ti = _cost(ctx, q_interp)
+        co, to = _cost(ctx, q_opt)
+        rep.notes.append(
+            f"condition {ctx.condition}: interpolation cost {ci:.4g} "
+            f"(torque sum {ti:.4g} N m), optimisation {co:.4g} ({to:.4g} N m)"
+        )
+        wrote(
+            "fig10_interp_vs_optim.png",
+            plot_joint_angles(
+                q_interp,
+                q_opt,
+                ctx.duration,
+                robot.joint_names,
+                out / "fig10_interp_vs_optim.png",
+                first_label=f"interpolation (cost {ci:.3g})",
+                last_label=f"optimisation (cost {co:.3g})",
+                title=f"generation {last_gen}, condition {ctx.condition} left out: "
+                f"catch point {target_txt} m (Fig. 10)",
+            ),
+        )
+
+    # --- rendered figures: every frame in one renderer call (one GL context)
+    width, height = 320, 240
+    times = rnd.snapshot_times(ctx.duration, snapshots)
+    views = [rnd.VIEWS["front"], rnd.VIEWS["side"]]
+    jobs: dict[str, tuple[list[str], list[np.ndarray]]] = {}
+    if not blocked("fig7_snapshots.png"):
+        jobs["fig7_snapshots.png"] = (["generation 1", f"generation {last_gen}"], [q_first, q_last])
+    if not blocked("fig9_snapshots.png"):
+        jobs["fig9_snapshots.png"] = (["interpolation", "optimisation"], [q_interp, q_opt])
+    catch = None
+    if animation and not blocked("catch.gif"):
+        catch = _online_catch(data, ctx)
+        if not bool(catch.ok[0]):
+            rep.notes.append(
+                "the online catch is not flagged ok (outside the learned region, "
+                "unreachable or outside the limits); shown anyway"
+            )
+    elif not animation:
+        rep.skipped["catch.gif"] = "--no-animation"
+    batches, layout = [], []
+    motions = [q for _, qs in jobs.values() for q in qs]
+    if catch is not None:
+        motions.append(np.asarray(catch.q[0]))
+    if not motions:
+        return
+    floor = rnd.floor_height(robot, motions)
+    ball_target = np.tile(ctx.target, (snapshots, 1))
+    for name, (labels, qs) in jobs.items():
+        frames_q = [rnd.resample(q, times, ctx.duration) for q in qs]
+        for view in views:
+            cam = rnd.fit_camera(robot, frames_q, view, ctx.target[None])
+            for label, fq in zip(labels, frames_q):
+                batches.append(_Batch(fq, [cam], ball_target))
+                layout.append((name, f"{label}\n{view.name}"))
+    if catch is not None:
+        dur = float(catch.duration[0])
+        hold = max(gif_frames // 4, 1)  # the catch is held a moment at the end
+        t = np.linspace(0.0, dur, gif_frames)
+        q_gif = rnd.resample(catch.q[0], t, dur)
+        q_gif = np.concatenate([q_gif, np.repeat(q_gif[-1:], hold, axis=0)])
+        balls = rnd.ball_flight(catch.target[0], dur, np.concatenate([t, np.full(hold, dur)]))
+        balls[-hold:] = rnd.site_positions(robot, q_gif[-1:])  # caught: in the hand
+        cam = rnd.fit_camera(robot, [q_gif], rnd.VIEWS["three_quarter"], balls[gif_frames // 2 :])
+        batches.append(_Batch(q_gif, [cam], balls))
+        layout.append(("catch.gif", ""))
+    say(f"rendering {sum(len(b.q) for b in batches)} frames ...")
+    images, used = _render_batches(robot, batches, renderer, width, height, floor)
+    rep.renderer = used
+    by_name: dict[str, tuple[list[str], list[np.ndarray]]] = {}
+    for (name, label), im in zip(layout, images):
+        by_name.setdefault(name, ([], []))
+        by_name[name][0].append(label)
+        by_name[name][1].append(im)
+    titles = {
+        "fig7_snapshots.png": f"condition {ctx.condition}: generation 1 vs {last_gen} (Fig. 7)",
+        "fig9_snapshots.png": f"condition {ctx.condition}: interpolation vs optimisation (Fig. 9)",
+    }
+    for name, (labels, ims) in by_name.items():
+        path = out / name
+        if name == "catch.gif":
+            wrote(name, rnd.save_gif(ims[0], path, fps=gif_frames / max(ctx.duration, 0.3) / 2))
+            continue
+        wrote(name, _snapshot_figure(np.stack(ims), labels, times, path, titles[name], used))
+
+
+# ------------------------------------------------------------------------------------ HTML
+
+
+def _data_uri(path: Path) -> str:
+    mime = "image/gif" if path.suffix == ".gif" else "image/png"
+    return f"data:{mime};base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+def _summary_rows(data: RunData) -> list[tuple[str, str]]:
+    if data.summary:
+        keep = [k for k, v in data.summary.items() if not isinstance(v, (list, dict))]
+        return [(k, str(data.summary[k])) for k in keep]
+    if data.metrics:
+        first, last = data.metrics[0], data.metrics[-1]
+        rows = [("generations", str(last["generation"]))]
+        for key in ("db_cost_mean", "torque_sum_mean", "human_deviation_deg", "n_valid"):
+            rows.append(
+                (
+                    f"{key} (gen {first['generation']} -> {last['generation']})",
+                    f"{first.get(key)} -> {last.get(key)}",
+                )
+            )
+        return rows
+    return []
+
+
+def write_html(rep: Report, data: RunData) -> Path:
+    """One self-contained page (images inlined as base64) of everything in ``rep``."""
+    from evojax_motion.checkpoint import atomic_write_text
+
+    esc = html.escape
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'>",
+        f"<title>evojax-motion report: {esc(str(data.run_dir))}</title>",
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+        "img{max-width:100%;border:1px solid #ddd}table{border-collapse:collapse}"
+        "td{padding:2px 10px;border-bottom:1px solid #eee}.warn{background:#fff3f0;"
+        "border:1px solid #e0a090;padding:0.6em 1em}.note{color:#555}</style></head><body>",
+        "<h1>evojax-motion: training run report</h1>",
+        f"<p>run directory: <code>{esc(str(data.run_dir.resolve()))}</code><br>",
+        f"snapshots: {esc(rep.renderer)} &mdash; {esc(rep.gl_message)}</p>",
+    ]
+    if rep.problems or rep.skipped:
+        parts.append("<div class='warn'><b>Incomplete run folder.</b><ul>")
+        parts += [f"<li>{esc(msg)}</li>" for msg in rep.problems.values()]
+        parts += [f"<li>{esc(n)} not made: {esc(why)}</li>" for n, why in rep.skipped.items()]
+        parts.append("</ul></div>")
+    if rep.renderer.startswith("stick"):
+        parts.append(
+            "<p class='warn'>No OpenGL backend for MuJoCo's renderer: the snapshots "
+            "and the animation are matplotlib stick figures from forward kinematics "
+            "(fallback).</p>"
+        )
+    rows = _summary_rows(data)
+    if rows:
+        parts.append("<h2>Summary</h2><table>")
+        parts += [f"<tr><td>{esc(k)}</td><td>{esc(v)}</td></tr>" for k, v in rows]
+        parts.append("</table>")
+    if rep.notes:
+        parts.append(
+            "<ul class='note'>" + "".join(f"<li>{esc(n)}</li>" for n in rep.notes) + "</ul>"
+        )
+    for name, (title, _, caption) in FIGURES.items():
+        parts.append(f"<h2>{esc(title)}</h2>")
+        if name in rep.figures:
+            parts.append(
+                f"<p>{esc(caption)}</p><img alt='{esc(name)}' src='{_data_uri(rep.figures[name])}'>"
+            )
+        else:
+            parts.append(f"<p class='note'>not made: {esc(rep.skipped.get(name, '?'))}</p>")
+    parts.append("</body></html>\n")
+    return atomic_write_text(rep.out_dir / HTML_FILE, "\n".join(parts))
+
+
+# ------------------------------------------------------------------------------------- CLI
+
+
+def add_report_parser(subparsers) -> None:
+    """Add ``report`` to the ``evojax-motion`` subcommands (``cli.build_parser``)."""
+    p = subparsers.add_parser(
+        "report",
+        help="the paper's figures and an HTML page from a run directory",
+        description="Write the figures of a training run (paper Fig. 4, 5, 7-10, a cost vs "
+        "human-likeness plot and a catch animation) and one self-contained report.html. "
+        "Exit status: 0 all written; 1 run files missing (the other figures are written); "
+        "2 no run in RUN_DIR.",
+    )
+    p.add_argument("run_dir", metavar="RUN_DIR", help="the --out folder of `evojax-motion train`")
+    p.add_argument("--out", default=None, help="output folder (default: RUN_DIR/report)")
+    p.add_argument(
+        "--condition",
+        type=int,
+        default=None,
+        help="condition index (default: the config's train.plot_condition)",
+    )
+    p.add_argument("--joint", default=None, help="joint of Fig. 4 (default: the most varied)")
+    p.add_argument(
+        "--renderer",
+        choices=("auto", "mujoco", "stick"),
+        default="auto",
+        help="snapshots: MuJoCo if a GL backend works (auto), MuJoCo only, or "
+        "matplotlib stick figures",
+    )
+    p.add_argument("--snapshots", type=int, default=5, help="snapshots per motion (default 5)")
+    p.add_argument("--gif-frames", type=int, default=36, help="frames of the catch animation")
+    p.add_argument("--no-animation", action="store_true", help="skip catch.gif")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=run_report)
+
+
+def run_report(args) -> int:
+    """The ``report`` subcommand: 0 complete, 1 incomplete run folder (figures still written)."""
+    rep = make_report(
+        args.run_dir,
+        args.out,
+        condition=args.condition,
+        joint=args.joint,
+        renderer=args.renderer,
+        snapshots=args.snapshots,
+        gif_frames=args.gif_frames,
+        animation=not args.no_animation,
+        quiet=args.quiet,
+    )
+    print(rep.html)
+    if rep.problems:
+        names = ", ".join(rep.problems)
+        print(
+            f"error: incomplete run folder ({names}); the other figures were written",
+            file=sys.stderr,
+        )
+        return 1
+    return 0

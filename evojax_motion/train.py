@@ -1,0 +1,431 @@
+"""The config-driven training run: the paper's offline process (sec. 3.1, Fig. 3; sec. 4.2-4.4).
+
+``run_training(cfg, out_dir)`` builds the human database (synthetic demonstrations or
+``demos_file``), draws the fixed condition set, and runs ``evolution.generations`` generations of
+the jitted `evolution.make_generation_step`. The run folder holds:
+
+| path | content |
+|---|---|
+| ``config.yaml`` | the resolved config (a resumed run must match it) |
+| ``robot.xml`` | the robot's MJCF |
+| ``metrics.jsonl`` | one JSON object per generation (fields: `METRIC_FIELDS`) |
+| ``checkpoints/<g>/`` | orbax checkpoint after generation g (0 = before the first): database, |
+| | conditions, generation index; metrics history and checksum as JSON |
+| ``db_initial.npz``, ``db_gen1.npz``, ``db_final.npz`` | databases (``database.save_database``) |
+| ``plots/costs.png``, ``plots/joint_angles.png`` | Fig. 5 and Fig. 8 of the paper |
+| ``summary.json`` | the summary `run_training` returns |
+
+The generation step has no randomness (the condition set is drawn once, from ``seed``), so a
+resumed run recomputes exactly what an uninterrupted one would: the final database is the same bit
+for bit. Every file is written atomically (temporary file + ``os.replace``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from evojax_motion.errors import UserError
+
+if TYPE_CHECKING:
+    from evojax_motion.config import Config
+
+CONDITIONS_STREAM = 1  # fold_in index of the condition set's key (seed -> streams)
+CONFIG_FILE, ROBOT_FILE, METRICS_FILE = "config.yaml", "robot.xml", "metrics.jsonl"
+CHECKPOINT_DIR, PLOT_DIR, SUMMARY_FILE = "checkpoints", "plots", "summary.json"
+DB_INITIAL, DB_GEN1, DB_FINAL = "db_initial.npz", "db_gen1.npz", "db_final.npz"
+METRIC_FIELDS = (
+    "generation",
+    "seconds",
+    "offspring_cost_mean",
+    "db_cost_mean",
+    "torque_sum_mean",
+    "human_deviation_deg",
+    "n_replaced",
+    "n_rejected_nonfinite",
+    "n_rejected_limits",
+    "n_rejected_bc",
+    "n_valid",
+    "n_short",
+    "bc_residual_max",
+    "bc_velocity_residual_max",
+    "converged_fraction",
+)
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Run bookkeeping.
+
+    - ``max_to_keep``: checkpoints kept (>= 2, so a damaged latest one has a predecessor).
+    - ``plot_condition``: index of the condition drawn in ``plots/joint_angles.png`` (Fig. 8).
+    - ``plots``: write the figures.
+    """
+
+    max_to_keep: int = 3
+    plot_condition: int = 0
+    plots: bool = True
+
+    def __post_init__(self):
+        if not (isinstance(self.max_to_keep, int) and self.max_to_keep >= 2):
+            raise ValueError(f"max_to_keep: expected an integer >= 2, got {self.max_to_keep!r}")
+        if not (isinstance(self.plot_condition, int) and self.plot_condition >= 0):
+            raise ValueError(
+                f"plot_condition: expected an integer >= 0, got {self.plot_condition!r}"
+            )
+
+
+# ----------------------------------------------------------------------------- run folder checks
+
+
+def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """Dotted keys where two nested config dicts differ."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        dotted = f"{prefix}{key}"
+        va, vb = a.get(key), b.get(key)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += _config_diff(va, vb, dotted + ".")
+        elif va != vb:
+            out.append(f"{dotted} ({va!r} there, {vb!r} here)")
+    return out
+
+
+def check_run_dir(out: Path, cfg_dict: dict, resume: bool) -> bool:
+    """Refuse a folder that is not this run's; True when ``out`` already holds this run.
+
+    Raises ``UserError`` (nothing written) when: ``out`` is a file; without ``resume``, ``out`` is
+    not empty; with ``resume``, ``out`` holds no run; ``out`` holds another config's run.
+    """
+    import yaml
+
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: expected a run directory, found a file")
+    entries = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    cfg_path = out / CONFIG_FILE
+    if cfg_path.is_file():
+        try:
+            theirs = yaml.safe_load(cfg_path.read_text())
+        except yaml.YAMLError:
+            theirs = None
+        if not isinstance(theirs, dict):
+            raise UserError(f"{cfg_path}: unreadable; {out} does not hold a run of this config")
+        diff = _config_diff(theirs, cfg_dict)
+        if diff:
+            shown = "; ".join(diff[:3]) + (f"; ... ({len(diff)} keys)" if len(diff) > 3 else "")
+            raise UserError(f"{out}: holds the run of another config: {shown}")
+    if resume:
+        if not cfg_path.is_file():
+            raise UserError(f"{out}: --resume: no run to resume here (no {CONFIG_FILE})")
+        return True
+    if entries:
+        hint = "pass --resume to continue it" if cfg_path.is_file() else "choose an empty folder"
+        raise UserError(f"{out}: not empty ({hint})")
+    return False
+
+
+# ------------------------------------------------------------------------------------ helpers
+
+
+def _json_value(x) -> Any:
+    x = np.asarray(x).item() if np.ndim(x) == 0 else x
+    if isinstance(x, float) and not math.isfinite(x):
+        return None  # strict JSON: NaN/inf (e.g. a mean over no slot) become null
+    return x
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.4g}"
+
+
+def _metrics_text(rows: list[dict]) -> str:
+    return "".join(json.dumps(r, allow_nan=False) + "\n" for r in rows)
+
+
+def _state_tree(db, conditions, generation: int) -> dict:
+    from evojax_motion.conditions import conditions_to_tree
+
+    return {
+        "db": {k: np.asarray(v) for k, v in db._asdict().items()},
+        "conditions": None if conditions is None else conditions_to_tree(conditions),
+        "generation": np.asarray(generation, np.int32),
+    }
+
+
+def _from_state_tree(tree: dict):
+    from evojax_motion.conditions import conditions_from_tree
+    from evojax_motion.database import Database
+
+    return Database(**tree["db"]), conditions_from_tree(tree["conditions"]), int(tree["generation"])
+
+
+def _human_costs(dyn, grid, humans):
+    """Eq. 5 cost of every human primitive with this run's dynamics: ``(n,)``."""
+    import jax
+
+    from evojax_motion.objective import torque_cost
+
+    cost = jax.jit(jax.vmap(lambda q, d: torque_cost(dyn, grid, q, d)))(humans.q, humans.duration)
+    return np.asarray(cost, np.float32)
+
+
+def _numpy_db(db):
+    from evojax_motion.database import Database
+
+    return Database(*(np.asarray(a) for a in db))
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------- the run
+
+
+def initial_state(cfg: Config, robot, dyn, progress: bool = True):
+    """Generation 0 of ``cfg``: ``(db, conditions, meta, timings)``.
+
+    The human database (``demos_file`` or synthetic demonstrations), each primitive's eq. 5 cost
+    with this run's dynamics, the condition set drawn with the key ``fold_in(key(seed), 1)``, and
+    the database of capacity ``n_human + m`` with empty evolved slots. Writes nothing.
+    """
+    import jax
+
+    from evojax_motion.conditions import make_conditions
+    from evojax_motion.database import HUMAN, Database
+    from evojax_motion.evolution import init_evolved_slots
+    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.workflow import build_demonstrations
+
+    t0 = time.perf_counter()
+    humans, meta, _ = build_demonstrations(cfg, progress=progress)
+    keep = np.asarray(humans.valid) & (np.asarray(humans.origin) == HUMAN)
+    humans = Database(*(np.asarray(a)[keep] for a in humans))
+    grid = make_time_grid(humans.q.shape[1])
+    humans = humans._replace(cost=_human_costs(dyn, grid, humans))
+    t1 = time.perf_counter()
+    key = jax.random.fold_in(jax.random.key(cfg.seed), CONDITIONS_STREAM)
+    conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key)
+    conditions = jax.tree_util.tree_map(np.asarray, conditions)
+    db = _numpy_db(init_evolved_slots(humans, conditions))
+    timings = {"demos_seconds": t1 - t0, "conditions_seconds": time.perf_counter() - t1}
+    return db, conditions, meta, timings
+
+
+def _restore(out: Path, manager, cfg: Config, robot):
+    """The newest usable checkpoint of the run in ``out`` (or None), with the problems met.
+
+    Damaged steps newer than the one restored are deleted (new saves would collide with them).
+    """
+    from evojax_motion import checkpoint as ck
+    from evojax_motion.conditions import conditions_template
+    from evojax_motion.database import load_database
+    from evojax_motion.workflow import check_database_matches_robot
+
+    if not ((out / DB_INITIAL).is_file() and manager.all_steps()):
+        return None, []
+    db_init, meta = load_database(out / DB_INITIAL)
+    check_database_matches_robot(meta, robot, str(out / DB_INITIAL))
+    _, t, j = db_init.q.shape
+    template = _state_tree(db_init, None, 0)
+    template["conditions"] = conditions_template(cfg.evolution.conditions, t, j)
+    restored, problems = ck.restore_latest(manager, template)
+    for p in problems:
+        _log(f"warning: {p}")
+    if restored is None:
+        _log("warning: no usable checkpoint; starting the run again from generation 0")
+    else:
+        _log(f"resuming after generation {restored.step} (checkpoint {restored.step})")
+    for step in manager.all_steps():
+        if restored is None or step > restored.step:
+            manager.delete(step)
+    return restored, problems
+
+
+def run_training(
+    cfg: Config, out_dir: str | Path, resume: bool = False, progress: bool = True
+) -> dict:
+    """Evolve the database of ``cfg`` into ``out_dir``; resume the run there with ``resume``.
+
+    Returns the summary (also written to ``summary.json`` and printed): generations, eq. 5 cost
+    and torque sum of generation 1 and of the last one with the reduction in %, the final
+    ``human_deviation_deg``, seconds per generation (execution; compile time separate), paths.
+    Raises ``UserError`` before writing anything when ``out_dir`` is not usable (see
+    `check_run_dir`), the demonstrations cannot be read or the condition set cannot be drawn.
+    """
+    import jax
+    from tqdm.auto import tqdm
+
+    from evojax_motion import checkpoint as ck
+    from evojax_motion.config import config_to_dict, config_to_yaml
+    from evojax_motion.database import HUMAN, save_database
+    from evojax_motion.evolution import make_generation_step
+    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.workflow import make_robot_dynamics
+
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    evo, tr = cfg.evolution, cfg.train
+    if tr.plot_condition >= evo.conditions:
+        raise UserError(
+            f"train.plot_condition: expected < evolution.conditions ({evo.conditions}), "
+            f"got {tr.plot_condition}"
+        )
+    resume = check_run_dir(out, config_to_dict(cfg), resume)
+    robot, dyn = make_robot_dynamics(cfg)
+
+    restored, problems, manager = None, [], None
+    if resume and (out / CHECKPOINT_DIR).is_dir():
+        manager = ck.open_manager(out / CHECKPOINT_DIR, tr.max_to_keep)
+        restored, problems = _restore(out, manager, cfg, robot)
+    timings: dict = {}
+    if restored is not None:
+        db, conditions, start = _from_state_tree(restored.state)
+        meta = meta_of(out)
+        metrics = [dict(r) for r in restored.meta.get("metrics", [])][:start]
+    else:  # every UserError of the inputs is raised here, before anything is written
+        db, conditions, meta, timings = initial_state(cfg, robot, dyn, progress)
+        start, metrics = 0, []
+
+    out.mkdir(parents=True, exist_ok=True)
+    ck.atomic_write_text(out / CONFIG_FILE, config_to_yaml(cfg))
+    ck.atomic_write_text(out / ROBOT_FILE, robot.mjcf)
+    if manager is None:
+        manager = ck.open_manager(out / CHECKPOINT_DIR, tr.max_to_keep)
+    if restored is None:
+        save_database(out / DB_INITIAL, db, meta)
+        ck.save_checkpoint(manager, 0, _state_tree(db, conditions, 0), {"metrics": []})
+    ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
+
+    n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
+    grid = make_time_grid(db.q.shape[1])
+    step_fn = make_generation_step(
+        dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, evo
+    )
+    t0 = time.perf_counter()
+    if start < evo.generations:  # ahead of time, so that "seconds" per generation is execution
+        compiled = step_fn.lower(db, conditions, np.asarray(start + 1, np.int32)).compile()
+    timings["compile_seconds"] = time.perf_counter() - t0
+
+    bar = tqdm(
+        total=evo.generations, initial=start, disable=not progress, desc="evolution", unit="gen"
+    )
+    try:
+        for g in range(start + 1, evo.generations + 1):
+            t0 = time.perf_counter()
+            db_new, stats = compiled(db, conditions, np.asarray(g, np.int32))
+            db = _numpy_db(jax.block_until_ready(db_new))
+            row = {"generation": g, "seconds": round(time.perf_counter() - t0, 4)}
+            row.update({k: _json_value(v) for k, v in stats._asdict().items()})
+            metrics.append(row)
+            if g == 1:  # kept for Fig. 8 (first vs last generation); written before checkpoint 1
+                save_database(out / DB_GEN1, db, meta)
+            ck.save_checkpoint(manager, g, _state_tree(db, conditions, g), {"metrics": metrics})
+            ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
+            bar.update(1)
+            bar.set_postfix(
+                cost=_fmt(row["db_cost_mean"]),
+                torque=_fmt(row["torque_sum_mean"]),
+                replaced=row["n_replaced"],
+                dev_deg=_fmt(row["human_deviation_deg"]),
+            )
+    finally:
+        bar.close()
+        manager.close()
+
+    save_database(out / DB_FINAL, db, meta)
+    plot_paths = _write_plots(out, cfg, robot, db, conditions, metrics, n_human) if tr.plots else []
+    timings["total_seconds"] = time.perf_counter() - t_start
+    summary = _summary(out, metrics, timings, plot_paths)
+    summary["checkpoint_problems"] = problems
+    summary["resumed_from"] = None if restored is None else int(restored.step)
+    ck.atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    print_summary(summary)
+    return summary
+
+
+def meta_of(out: Path):
+    """The ``DatabaseMeta`` of a run (read back from its ``db_initial.npz``)."""
+    from evojax_motion.database import load_database
+
+    return load_database(out / DB_INITIAL)[1]
+
+
+def _write_plots(out, cfg, robot, db, conditions, metrics, n_human) -> list[str]:
+    from evojax_motion.database import load_database
+    from evojax_motion.plots import plot_costs, plot_joint_angles
+
+    paths = []
+    if metrics:
+        paths.append(str(plot_costs(metrics, out / PLOT_DIR / "costs.png")))
+    c = cfg.train.plot_condition
+    slot = n_human + c
+    if (out / DB_GEN1).is_file() and bool(db.valid[slot]):
+        first, _ = load_database(out / DB_GEN1)
+        if bool(first.valid[slot]):
+            target = [round(float(x), 3) for x in np.asarray(conditions.target[c])]
+            paths.append(
+                str(
+                    plot_joint_angles(
+                        first.q[slot],
+                        db.q[slot],
+                        float(db.duration[slot]),
+                        robot.joint_names,
+                        out / PLOT_DIR / "joint_angles.png",
+                        q_human=np.asarray(conditions.human_q[c]),
+                        last_label=f"generation {len(metrics)}",
+                        title=f"condition {c}: hand target {target} m (Fig. 8)",
+                    )
+                )
+            )
+    return paths
+
+
+def _summary(out: Path, metrics: list[dict], timings: dict, plots) -> dict:
+    first, last = (metrics[0], metrics[-1]) if metrics else ({}, {})
+
+    def reduction(name):
+        a, b = first.get(name), last.get(name)
+        return None if a in (None, 0) or b is None else round(100.0 * (a - b) / a, 3)
+
+    secs = [r["seconds"] for r in metrics]
+    summary = {
+        "generations": len(metrics),
+        "db_cost_gen1": first.get("db_cost_mean"),
+        "db_cost_last": last.get("db_cost_mean"),
+        "db_cost_reduction_pct": reduction("db_cost_mean"),
+        "torque_sum_gen1": first.get("torque_sum_mean"),
+        "torque_sum_last": last.get("torque_sum_mean"),
+        "torque_sum_reduction_pct": reduction("torque_sum_mean"),
+        "human_deviation_deg": last.get("human_deviation_deg"),
+        "n_valid": last.get("n_valid"),
+        "seconds_per_generation": round(float(np.mean(secs)), 4) if secs else None,
+    }
+    summary.update({k: round(v, 3) for k, v in timings.items()})
+    summary.update(
+        run_dir=str(out),
+        db_final=str(out / DB_FINAL),
+        metrics=str(out / METRICS_FILE),
+        plots=list(plots),
+    )
+    return summary
+
+
+def print_summary(summary: dict) -> None:
+    """The summary as an aligned two-column table on stdout."""
+    keys = [k for k in summary if k not in ("checkpoint_problems",)]
+    width = max(len(k) for k in keys)
+    for k in keys:
+        v = summary[k]
+        if isinstance(v, float):
+            v = f"{v:.6g}"
+        elif isinstance(v, list):
+            v = ", ".join(map(str, v)) if v else "-"
+        print(f"{k:<{width}}  {v}")

@@ -1,0 +1,197 @@
+"""Retargeting (evojax_motion.mocap.retarget): key points, scaling, batched key-point IK,
+segmentation and resampling. References: C MuJoCo kinematics, trajectories the robot itself
+produced (their key points are reachable, so the IK must find them), analytic speed profiles."""
+
+import functools
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from evojax_motion.dynamics import make_dynamics
+from evojax_motion.errors import UserError
+from evojax_motion.mocap import retarget as rt
+from evojax_motion.mocap.markers import TrialError
+from evojax_motion.objective import torque_cost
+from evojax_motion.robot import load_robot
+from evojax_motion.timegrid import make_time_grid
+
+TOL_FK = 1e-5  # [m] float32 FK vs C MuJoCo
+TOL_IK = 1e-3  # [m] reachable key points, after the warm-up and 4 LM iterations per frame
+TOL_LIMIT = 1e-6  # [rad]
+B, F = 2, 64  # IK test shapes (one compilation per robot)
+
+
+@pytest.fixture(scope="module")
+def mahru():
+    robot = load_robot("mahru_arm")
+    return robot, make_dynamics(robot)
+
+
+@pytest.fixture(scope="module")
+def arm6():
+    robot = load_robot("arm6")
+    return robot, make_dynamics(robot)
+
+
+def _mujoco_points(robot, kp, q):
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:] = m.qpos0
+    d.qpos[robot.qpos_adr] = q
+    mujoco.mj_kinematics(m, d)
+    return np.stack([d.site_xpos[robot.site_id] if b < 0 else d.xpos[b] for b in kp.body_ids])
+
+
+@pytest.mark.parametrize("name", ["mahru_arm", "arm6"])
+def test_default_keypoints_match_mujoco(name, mahru, arm6):
+    robot, dyn = mahru if name == "mahru_arm" else arm6
+    kp = rt.robot_keypoints(robot)
+    assert kp.human == ("shoulder", "elbow", "wrist", "hand")
+    assert kp.robot[-1] == f"site:{robot.site_name}"
+    expected_w = (1.0, 1.0, 1.0, 1.0) if name == "mahru_arm" else (0.0, 0.0, 1.0, 1.0)
+    assert kp.weights == expected_w
+    q = np.clip(np.asarray(robot.rest) + 0.3, robot.lower, robot.upper)
+    np.testing.assert_allclose(
+        rt.rest_keypoints(dyn, kp, q), _mujoco_points(robot, kp, q), atol=TOL_FK
+    )
+
+
+def test_keypoint_maps_custom_guessed_and_bad(mahru):
+    robot, _ = mahru
+    kp = rt.robot_keypoints(robot, {"forearm": "elbow", "hand": "hand"}, {"elbow": 0.5})
+    assert kp.robot == ("body:forearm", "site:hand") and kp.weights == (0.5, 1.0)
+    guessed = rt._guess_keypoints(robot)
+    assert guessed == {
+        "body:upper_arm": "shoulder",
+        "body:forearm": "elbow",
+        "body:hand": "wrist",
+        "site:hand": "hand",
+    }
+    for mapping, match in [
+        ({"body:nope": "elbow", "hand": "hand"}, "no body"),
+        ({"site:other": "elbow", "hand": "hand"}, "end-effector site"),
+        ({"forearm": "elbow"}, "need the hand"),
+        ({"forearm": "knee", "hand": "hand"}, "expected a key point"),
+    ]:
+        with pytest.raises(UserError, match=match):
+            rt.robot_keypoints(robot, mapping)
+    with pytest.raises(UserError, match="weight"):
+        rt.robot_keypoints(robot, None, {"hand": -1.0})
+    assert rt.parse_pairs("a=b, c=d", "--x") == {"a": "b", "c": "d"}
+    with pytest.raises(UserError):
+        rt.parse_weights("hand=x")
+
+
+def test_scale_to_robot_keeps_directions_and_sets_lengths():
+    rng = np.random.default_rng(0)
+    human = np.cumsum(rng.normal(scale=0.2, size=(30, 4, 3)), axis=1)
+    human -= human[0, 0]
+    rest = np.array([[0.0, -0.19, 1.4], [0.0, -0.19, 1.12], [0.0, -0.19, 0.85], [0.0, -0.13, 0.8]])
+    out = rt.scale_to_robot(human, rest)
+    seg_t = np.diff(out.targets, axis=1)
+    np.testing.assert_allclose(
+        np.linalg.norm(seg_t, axis=-1), np.broadcast_to(out.robot_lengths, (30, 3)), atol=1e-12
+    )
+    seg_h = np.diff(human, axis=1)
+    cos = (
+        np.sum(seg_t * seg_h, -1) / np.linalg.norm(seg_t, axis=-1) / np.linalg.norm(seg_h, axis=-1)
+    )
+    np.testing.assert_allclose(cos, 1.0, atol=1e-12)
+    ratio = out.robot_lengths.sum() / np.median(np.linalg.norm(seg_h, axis=-1), axis=0).sum()
+    np.testing.assert_allclose(out.targets[:, 0], rest[0] + ratio * human[:, 0], atol=1e-12)
+    with pytest.raises(TrialError, match="coincide"):
+        rt.scale_to_robot(np.zeros((3, 4, 3)), rest)
+
+
+def _smooth_trajectory(robot, seed):
+    """(B, F, J) smooth joint paths inside the limits, starting at rest."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(robot.lower), np.asarray(robot.upper)
+    rest = np.asarray(robot.rest)
+    s = np.linspace(0, 1, F)[None, :, None]
+    mj = 10 * s**3 - 15 * s**4 + 6 * s**5
+    goal = rest + rng.uniform(-0.4, 0.4, (B, 1, len(rest)))
+    return np.clip(rest + (goal - rest) * mj, lo + 0.05, hi - 0.05)
+
+
+@pytest.mark.parametrize("name", ["mahru_arm", "arm6"])
+def test_ik_recovers_reachable_keypoints(name, mahru, arm6):
+    robot, dyn = mahru if name == "mahru_arm" else arm6
+    kp = rt.robot_keypoints(robot, weights={"shoulder": 1.0, "elbow": 1.0})
+    q_true = _smooth_trajectory(robot, 0)
+    targets = np.stack([[rt.rest_keypoints(dyn, kp, q) for q in path] for path in q_true])
+    out = rt.solve_keypoint_ik(
+        dyn, kp, rt.IKSettings(), targets, robot.rest, robot.lower, robot.upper, robot.rest
+    )
+    err = np.asarray(out.error)
+    assert err.max() < TOL_IK, err.max()
+    q = np.asarray(out.q)
+    assert (q >= robot.lower - TOL_LIMIT).all() and (q <= robot.upper + TOL_LIMIT).all()
+    # the reported error is the distance of the solution's key points to the targets
+    np.testing.assert_allclose(
+        err[1, -1],
+        np.linalg.norm(rt.rest_keypoints(dyn, kp, q[1, -1]) - targets[1, -1], axis=-1),
+        atol=TOL_FK,
+    )
+
+
+def test_ik_keeps_limits_on_unreachable_targets(mahru):
+    robot, dyn = mahru
+    kp = rt.robot_keypoints(robot, weights={"shoulder": 1.0, "elbow": 1.0})
+    targets = np.tile(rt.rest_keypoints(dyn, kp, robot.rest), (B, F, 1, 1))
+    targets[..., 1:, :] += np.array([0.0, -2.0, 2.0])  # far above and to the right
+    out = rt.solve_keypoint_ik(
+        dyn, kp, rt.IKSettings(), targets, robot.rest, robot.lower, robot.upper, robot.rest
+    )
+    q = np.asarray(out.q)
+    assert np.isfinite(q).all()
+    assert (q >= robot.lower - TOL_LIMIT).all() and (q <= robot.upper + TOL_LIMIT).all()
+    assert rt.at_limit(q[0], robot.lower, robot.upper).any()  # it pushed into a limit
+    assert np.asarray(out.error)[..., 1:].min() > 1.0  # the moved key points stay far
+
+
+def test_segment_movement_on_a_minimum_jerk_reach():
+    rate, dur, pre, post = 100.0, 0.8, 50, 40
+    n = round(dur * rate)
+    s = np.arange(n + 1) / n
+    pos = 10 * s**3 - 15 * s**4 + 6 * s**5
+    path = np.concatenate([np.zeros(pre), pos, np.ones(post)])
+    hand = np.outer(0.4 * path, [1.0, 0.5, 0.0])
+    seg = rt.segment_movement(hand, rate, threshold=0.05)
+    # analytic crossing of 5 % of the peak speed (30 s^2 (1-s)^2 peaks at 1.875)
+    fine = np.linspace(0, 0.5, 100001)
+    s_on = fine[np.argmax(30 * fine**2 * (1 - fine) ** 2 >= 0.05 * 1.875)]
+    assert abs(seg.onset - (pre + s_on * n)) <= 1.5
+    assert abs(seg.offset - (pre + (1 - s_on) * n)) <= 1.5
+    assert seg.peak_speed == pytest.approx(0.4 * np.hypot(1, 0.5) * 1.875 / dur, rel=2e-3)
+    assert seg.rest_start and seg.rest_end
+    with pytest.raises(TrialError, match="no movement"):
+        rt.segment_movement(hand * 1e-3, rate)
+
+
+def test_resample_is_exact_at_the_ends_and_never_overshoots():
+    q = np.array([[0.0, 1.0], [0.0, 1.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0]])
+    out = rt.resample(q, 50)
+    np.testing.assert_allclose(out[[0, -1]], q[[0, -1]])
+    assert out.min() >= 0.0 and out.max() <= 1.0
+    lin = rt.resample(np.linspace(0, 1, 7)[:, None], 13)
+    np.testing.assert_allclose(lin[:, 0], np.linspace(0, 1, 13), atol=1e-12)
+
+
+def test_conditions_and_costs_match_references(mahru):
+    robot, dyn = mahru
+    q = _smooth_trajectory(robot, 1)[:, ::4]  # (2, 16, J)
+    dur = np.array([0.8, 1.1])
+    cond, cost = rt.conditions_and_costs(dyn, q, dur)
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    grid = make_time_grid(q.shape[1])
+    ref_cost = jax.jit(functools.partial(torque_cost, dyn, grid))
+    for i in range(2):
+        d.qpos[robot.qpos_adr] = q[i, -1]
+        mujoco.mj_kinematics(m, d)
+        np.testing.assert_allclose(cond[i], d.site_xpos[robot.site_id], atol=TOL_FK)
+        ref = float(ref_cost(q[i].astype(np.float32), np.float32(dur[i])))
+        assert cost[i] == pytest.approx(ref, rel=1e-5)
