@@ -57,6 +57,7 @@ from evojax_motion.objective import torque_cost
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import derivatives, make_time_grid
 
+_Array = jax.Array | np.ndarray
 HALTON_BASES = (2, 3, 5)
 LIMIT_TOUCH_TOL = 1e-4  # [rad] a joint this close to the shrunk limits was clamped by the IK
 CLIP_SIGMAS = 3.0  # every normal draw is clipped at this many standard deviations
@@ -115,9 +116,9 @@ def _check_range(name, value, lo, hi, open_low=False):
         and value[0] < value[1] <= hi
     )
     if not ok:
-        bound = f"{'>' if open_low else '>='} {lo:g}"
         raise ValueError(
-            f"{name}: expected (min, max) with {bound}, min < max <= {hi:g}, got {value}"
+            f"{name}: expected [min, max] with {lo:g} {'<' if open_low else '<='} min < max <= "
+            f"{hi:g}, got {value!r}"
         )
 
 
@@ -131,8 +132,9 @@ class RobotPreset(NamedTuple):
 
 
 ROBOT_PRESETS: dict[str, RobotPreset] = {
-    # Shoulder joint centre at (0, -0.19, 1.40), hand reach ~0.61 m (docs/robot_models.md): the
-    # sector stays within ~85 % of the reach, in front of and a little across the right shoulder.
+    # Shoulder joint centre at (0, -0.19, 1.40), hand reach ~0.61 m. The sector (52-85 % of the
+    # reach, in front of and a little across the right shoulder) spans about the box that
+    # docs/robot_models.md verifies as reachable with margins (x 0.2-0.5, y -0.5-0.1, z 1.1-1.7 m).
     "mahru_arm": RobotPreset(
         region=CatchRegion("upper_arm", (0.32, 0.52), (-45.0, 15.0), (-30.0, 30.0)),
         comfort_deg={
@@ -154,7 +156,8 @@ ROBOT_PRESETS: dict[str, RobotPreset] = {
         # waist is held toward its preference 4 times as hard as the arm joints.
         posture_weight={"waist_yaw": 1.0},
     ),
-    # Shoulder (upper_link origin) at (0.05, 0, 0.78), reach ~0.91 m.
+    # Shoulder (upper_link origin) at (0.05, 0, 0.78), reach ~0.91 m; its slow joints stretch
+    # most durations beyond Fitts' law (max_speed_fraction).
     "arm6": RobotPreset(
         region=CatchRegion("upper_link", (0.40, 0.70), (-40.0, 40.0), (-30.0, 20.0)),
         comfort_deg={},
@@ -230,7 +233,7 @@ class DemoSettings:
     limit_margin_deg: float = 2.0
     catch_tolerance: float = 0.005
     ik_iters: int = 8
-    oversample: float = 1.5
+    oversample: float = 1.2
     max_rounds: int = 8
 
     def __post_init__(self):
@@ -309,20 +312,20 @@ class _Params(NamedTuple):
 
 
 class _Trials(NamedTuple):
-    """A candidate pool, P trials. Shapes in comments."""
+    """A candidate pool, P trials (jax arrays in the jit, numpy after). Shapes in comments."""
 
-    q: jnp.ndarray  # (P, T, J)
-    duration: jnp.ndarray  # (P,)
-    target: jnp.ndarray  # (P, 3) catch point
-    final_pos: jnp.ndarray  # (P, 3) hand at the last sample (FK)
-    cost: jnp.ndarray  # (P,)
-    track_error: jnp.ndarray  # (P,) largest hand error along the path [m]
-    margin: jnp.ndarray  # (P, J) smallest distance to the true limits [rad]
-    speed_ratio: jnp.ndarray  # (P,) largest |qd| / velocity limit
-    end_speed: jnp.ndarray  # (P,) largest |qd| at s = 0 and s = 1 [rad/s]
-    asymmetry: jnp.ndarray  # (P,)
-    curvature: jnp.ndarray  # (P,)
-    stretched: jnp.ndarray  # (P,) duration lengthened beyond Fitts' law for the velocity limits
+    q: _Array  # (P, T, J)
+    duration: _Array  # (P,)
+    target: _Array  # (P, 3) catch point
+    final_pos: _Array  # (P, 3) hand at the last sample (FK)
+    cost: _Array  # (P,)
+    track_error: _Array  # (P,) largest hand error along the path [m]
+    margin: _Array  # (P, J) smallest distance to the true limits [rad]
+    speed_ratio: _Array  # (P,) largest |qd| / velocity limit
+    end_speed: _Array  # (P,) largest |qd| at s = 0 and s = 1 [rad/s]
+    asymmetry: _Array  # (P,)
+    curvature: _Array  # (P,)
+    stretched: _Array  # (P,) duration lengthened beyond Fitts' law for the velocity limits
 
 
 def _resolve(robot: Robot, settings: DemoSettings) -> _Resolved:
@@ -367,7 +370,7 @@ def _resolve(robot: Robot, settings: DemoSettings) -> _Resolved:
     if settings.comfort_joints is None:
         comfort_deg = from_preset("comfort_deg", None)
     else:
-        comfort_deg = dict(zip(settings.comfort_joints, settings.comfort_deg))
+        comfort_deg = dict(zip(settings.comfort_joints, settings.comfort_deg or ()))
     comfort = np.array(robot.rest, np.float64)
     for name, deg in comfort_deg.items():
         if name not in names:
@@ -674,6 +677,7 @@ def _report(robot, settings, res, good: _Trials, counts: dict, timing: dict) -> 
             "azimuth_deg": list(r.azimuth_deg),
             "elevation_deg": list(r.elevation_deg),
         },
+        "catch_points": good.target.tolist(),  # (count, 3) the targets, row i = db row i
         "catch_min_m": np.round(good.target.min(axis=0), 4).tolist(),
         "catch_max_m": np.round(good.target.max(axis=0), 4).tolist(),
         "catch_miss_max_m": float(miss.max()),

@@ -37,6 +37,7 @@ from evojax_motion.dynamics import Dynamics
 
 DEFAULT_TOL = 1e-4  # [m] a solution "converged" when the hand is this close to its target
 NULL_SPACE_MU = 1e-6  # [m^2] tiny regulariser of the null-space projector (keeps it a projector)
+PIVOT_FLOOR = 1e-12  # [m^2] smallest squared Cholesky pivot of the 3x3 solves
 
 
 class IKResult(NamedTuple):
@@ -62,34 +63,76 @@ def _hand_position_and_jacobian(dyn: Dynamics, q):
     return p, jac
 
 
-def _dls_step(jac, e, free, g_pref, damping):
-    """Task step + null-space step with only the ``free`` (J,) {0,1} joints moving. -> (J,)."""
+def _solve_spd3(a, b):
+    """``a^-1 b`` for a symmetric positive definite ``a (3, 3)``, ``b (3,)``, by a closed-form
+    Cholesky factorisation: elementwise code that XLA fuses (a batched LAPACK call per 3x3 system
+    costs more than the arithmetic). Pivots are floored at ``PIVOT_FLOOR``: rounding must not
+    turn a nearly singular (regularised) system into a NaN."""
+
+    def root(x):
+        return jnp.sqrt(jnp.maximum(x, PIVOT_FLOOR))
+
+    l00 = root(a[0, 0])
+    l10 = a[1, 0] / l00
+    l20 = a[2, 0] / l00
+    l11 = root(a[1, 1] - l10**2)
+    l21 = (a[2, 1] - l20 * l10) / l11
+    l22 = root(a[2, 2] - l20**2 - l21**2)
+    y0 = b[0] / l00  # L y = b
+    y1 = (b[1] - l10 * y0) / l11
+    y2 = (b[2] - l20 * y0 - l21 * y1) / l22
+    x2 = y2 / l22  # L^T x = y
+    x1 = (y1 - l21 * x2) / l11
+    x0 = (y0 - l10 * x1 - l20 * x2) / l00
+    return jnp.stack([x0, x1, x2])
+
+
+def _gram(jf):
+    """``jf @ jf.T`` (3, 3), elementwise: tiny matmuls fuse instead of calling a GEMM."""
+    return jnp.sum(jf[:, None, :] * jf[None, :, :], axis=-1)
+
+
+def _task_step(jac, e, free, damping):
+    """Damped least-squares step ``(J,)`` of the ``free`` (J,) {0,1} joints toward error ``e``."""
     jf = jac * free[None, :]
-    jjt = jf @ jf.T
-    eye = jnp.eye(3, dtype=jac.dtype)
     # error-dependent damping (Sugihara 2011): fast near a solution, stable far from one
     lam2 = damping**2 + 0.5 * jnp.sum(e**2)
-    task = jf.T @ jnp.linalg.solve(jjt + lam2 * eye, e)
-    g = free * g_pref
-    # (I - J+ J) g with a near-exact pseudo-inverse: the pull must not fight the task
-    null = g - jf.T @ jnp.linalg.solve(jjt + NULL_SPACE_MU * eye, jf @ g)
-    return task + null
+    y = _solve_spd3(_gram(jf) + lam2 * jnp.eye(3, dtype=jac.dtype), e)
+    return jnp.sum(jf * y[:, None], axis=0)
+
+
+def _null_step(jac, free, g):
+    """``g`` projected on the null space of the ``free`` joints' Jacobian (other joints still).
+
+    A near-exact pseudo-inverse (``mu``, not the task damping): the pull must not move the hand.
+    """
+    jf, gf = jac * free[None, :], g * free
+    eye = jnp.eye(3, dtype=jac.dtype)
+    y = _solve_spd3(_gram(jf) + NULL_SPACE_MU * eye, jnp.sum(jf * gf[None, :], axis=1))
+    return gf - jnp.sum(jf * y[:, None], axis=0)
 
 
 def _ik_iteration(dyn, q, target, q_pref, w_pref, lower, upper, damping, max_step):
     """One clamped damped-least-squares iteration for one sample. ``q (J,)`` -> ``q (J,)``."""
     p, jac = _hand_position_and_jacobian(dyn, q)
     e = target - p
-    g_pref = w_pref * (q_pref - q)
-    ones = jnp.ones_like(q)
-    dq = _dls_step(jac, e, ones, g_pref, damping)
-    # Joints that would leave the box go onto their limit and out of the Jacobian; the rest
-    # re-solve the error that remains after the clamped joints' motion.
-    q_try = q + dq
-    blocked = (q_try < lower) | (q_try > upper)
-    dq_blocked = jnp.where(blocked, jnp.clip(q_try, lower, upper) - q, 0.0)
-    dq_free = _dls_step(jac, e - jac @ dq_blocked, jnp.where(blocked, 0.0, 1.0), g_pref, damping)
-    dq = dq_blocked + dq_free
+
+    def outside(x):
+        return (x < lower) | (x > upper)
+
+    # Task first: joints the step would push across a limit go onto it and out of the Jacobian;
+    # the others re-solve the error that remains after the clamped joints' motion.
+    dq = _task_step(jac, e, jnp.ones_like(q), damping)
+    blocked = outside(q + dq)
+    dq_clamped = jnp.where(blocked, jnp.clip(q + dq, lower, upper) - q, 0.0)
+    free = jnp.where(blocked, 0.0, 1.0)
+    dq_task = dq_clamped + _task_step(jac, e - jnp.sum(jac * dq_clamped, axis=1), free, damping)
+    # Then the preference, among the joints it would not push across a limit: a preference can
+    # stop at a limit, but never take joints away from the task.
+    g = w_pref * (q_pref - q)
+    dq_null = _null_step(jac, free, g)
+    free = jnp.where(outside(q + dq_task + dq_null), 0.0, free)
+    dq = dq_task + _null_step(jac, free, g)
     # trust region: large steps far from the solution overshoot the linearisation
     scale = jnp.minimum(1.0, max_step / (jnp.max(jnp.abs(dq)) + 1e-12))
     return jnp.clip(q + scale * dq, lower, upper)

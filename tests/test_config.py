@@ -40,7 +40,11 @@ def test_dotted_overrides_are_typed():
 @pytest.mark.parametrize(
     ("data", "overrides", "message"),
     [
-        ({"evolution": {"generatons": 3}}, [], r"evolution.generatons: unknown key; did you mean 'generations'"),
+        (
+            {"evolution": {"generatons": 3}},
+            [],
+            r"evolution.generatons: unknown key; did you mean 'generations'",
+        ),
         ({}, ["evolution.generations=-3"], r"evolution.generations"),
         ({}, ["evolution.generations=ten"], r"evolution.generations: expected an integer"),
         ({}, ["dynamics=pinocchio"], r"dynamics: expected one of"),

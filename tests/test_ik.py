@@ -25,6 +25,7 @@ N_PREF, N_BOX, N_FAR = 24, 12, 4  # rows: 2 x N_PREF preferences, N_BOX boxes, N
 W_PREF = np.array([1.0, 0.25, 0.25, 0.25, 0.25, 0.5, 0.5], np.float32)  # waist held hardest
 # models/mahru_arm.xml: waist axis through x = y = 0, shoulder 0.19 m to its right at z = 1.40
 SHOULDER_OFFSET, SHOULDER_Z = 0.19, 1.40
+FRONT_X = 0.15  # [m] reachable test targets lie in front of the trunk (x > FRONT_X)
 REACH = 0.2817 + 0.2689 + np.hypot(0.015, 0.06)  # upper arm + forearm + hand site
 
 
@@ -58,7 +59,10 @@ def batch(arm):
     robot, dyn, fk = arm
     j = robot.n_joints
     rest = np.asarray(robot.rest, np.float32)
-    reach_q = _postures(robot, jax.random.key(0), N_PREF, 0.4)
+    # reachable targets in front of the body, where the catch targets are (behind the back some
+    # random targets sit past box-constrained local minima from the rest posture)
+    cand = _postures(robot, jax.random.key(0), 8 * N_PREF, 0.4)
+    reach_q = cand[np.asarray(fk(cand))[:, 0] > FRONT_X][:N_PREF]
     box_q = _postures(robot, jax.random.key(1), N_BOX, 0.4)
     far_dir = np.array([[1.0, 0, 0], [0.6, -0.8, 0], [0.7, 0, 0.7], [0.3, -0.3, 0.905]])
     far = np.array([0.0, -SHOULDER_OFFSET, SHOULDER_Z]) + 1.2 * far_dir  # ~2 reaches away
@@ -99,7 +103,7 @@ def batch(arm):
     rows = {
         name: np.arange(a, b) for name, a, b in zip(("a", "b", "box", "far"), starts, starts[1:])
     }
-    assert q_init.shape == (starts[-1], j)
+    assert q_init.shape == (starts[-1], j) and len(reach_q) == N_PREF
     return args, res, rows, pref_b
 
 

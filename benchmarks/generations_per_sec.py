@@ -1,0 +1,342 @@
+"""Generations per second of the evolution, with the quality of the same run, against a baseline.
+
+What one run measures (all figures from the same process, so ratios are meaningful):
+
+- ``ours``: the end-to-end generation step (neighbours + PCA + optimisation + survivor selection,
+  one jit) at each swept number of conditions / samples: compile time (ahead of time), then the
+  mean wall time of ``--generations`` generations after compilation -> generations/s; peak memory
+  (device allocator on GPU, max RSS on CPU);
+- ``gap``: on the first ``--gap-conditions`` conditions of generation 1, the relative gap of our
+  offspring's eq. 5 cost to a float64 SciPy SLSQP solve of the same problem (same basis, BCs,
+  objective, start; ``slsqp_reference.py``): median / p95 / max;
+- ``baseline``: what a user would write: SLSQP per condition (float64), torques from C MuJoCo
+  ``mj_inverse`` with finite-difference gradients, and with analytic (float64 JAX) gradients;
+  sequential and with a process pool over all cores; timed on ``--baseline-conditions``
+  conditions and scaled to the full condition count -> generations/s and ours/baseline ratios;
+- ``first_generation``: time to the first generation in a fresh process (demonstrations, conditions,
+  compile, one generation), cold and with JAX's persistent compilation cache.
+
+Usage (CPU, paper scale):
+    python benchmarks/generations_per_sec.py --config configs/catch_ball.yaml
+GPU sweep:
+    python benchmarks/generations_per_sec.py --sweep-conditions 1000,10000,100000 --no-baseline
+Writes ``benchmarks/results/generations_per_sec_<tag>.json`` and prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import multiprocessing as mp
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+import jax
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from evojax_motion.basis import pca_basis, select_neighbours  # noqa: E402
+from evojax_motion.compile_optim import make_optimisation_compiler  # noqa: E402
+from evojax_motion.config import config_from_dict, config_to_dict, load_config  # noqa: E402
+from evojax_motion.database import HUMAN  # noqa: E402
+from evojax_motion.evolution import make_generation_step  # noqa: E402
+from evojax_motion.timegrid import make_time_grid  # noqa: E402
+from evojax_motion.train import initial_state  # noqa: E402
+from evojax_motion.workflow import make_robot_dynamics  # noqa: E402
+
+
+def machine_info() -> dict:
+    dev = jax.devices()[0]
+    return {
+        "platform": dev.platform,
+        "device_kind": dev.device_kind,
+        "device_count": jax.device_count(),
+        "cpu_count": os.cpu_count(),
+        "processor": platform.processor() or platform.machine(),
+        "jax": jax.__version__,
+        "python": platform.python_version(),
+        "date": date.today().isoformat(),
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+    }
+
+
+def peak_memory_bytes() -> int:
+    stats = jax.devices()[0].memory_stats() or {}
+    if "peak_bytes_in_use" in stats:
+        return int(stats["peak_bytes_in_use"])
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux: KiB
+
+
+def build(cfg, conditions: int):
+    """Robot, dynamics, the generation-0 database and condition set for ``conditions``."""
+    cfg = config_from_dict(config_to_dict(cfg), [f"evolution.conditions={conditions}"])
+    robot, dyn = make_robot_dynamics(cfg)
+    db, conds, _meta, _baseline, _t = initial_state(cfg, robot, dyn, progress=False)
+    return cfg, robot, dyn, db, conds
+
+
+def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
+    """Compile the generation step ahead of time, then time ``generations`` generations."""
+    n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
+    grid = make_time_grid(db.q.shape[1])
+    step = make_generation_step(
+        dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, cfg.evolution
+    )
+    t0 = time.perf_counter()
+    compiled = step.lower(db, conds, np.asarray(1, np.int32)).compile()
+    compile_s = time.perf_counter() - t0
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    seconds, costs = [], []
+    for g in range(1, generations + 1):
+        t0 = time.perf_counter()
+        db, stats = compiled(db, conds, np.asarray(g, np.int32))
+        jax.block_until_ready(db)
+        seconds.append(time.perf_counter() - t0)
+        costs.append(float(stats.db_cost_mean))
+    # Generation 1 fills empty slots (different work than later ones): report both.
+    later = seconds[1:] or seconds
+    return {
+        "conditions": int(conds.target.shape[0]),
+        "samples": int(db.q.shape[1]),
+        "compile_s": compile_s,
+        "seconds_per_generation": float(np.median(later)),
+        "first_generation_s": seconds[0],
+        "generations_per_s": 1.0 / float(np.median(later)),
+        "seconds": seconds,
+        "db_cost_mean": costs,
+        "flops_per_generation": float((cost or {}).get("flops", float("nan"))),
+        "peak_memory_bytes": peak_memory_bytes(),
+    }
+
+
+def generation1_problems(cfg, robot, dyn, db, conds, n: int):
+    """Bases and boundaries of the first ``n`` conditions at generation 1 (the initial database)."""
+    grid = make_time_grid(db.q.shape[1])
+    b = cfg.basis
+    nb = select_neighbours(
+        db.condition, db.valid, conds.target[:n], b.neighbours, b.radius, b.w_pos
+    )
+    basis = pca_basis(db.q, db.duration, nb, cfg.compiler.n_components)
+    boundary = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], conds.boundary)
+    return grid, jax.tree_util.tree_map(np.asarray, basis), boundary
+
+
+def optimality_gap(cfg, robot, dyn, db, conds, n: int) -> dict:
+    """Our optimiser vs float64 SLSQP on the same ``n`` problems of generation 1."""
+    from slsqp_reference import solve_reference, torque_costs_f64
+
+    grid, basis, boundary = generation1_problems(cfg, robot, dyn, db, conds, n)
+    ours = make_optimisation_compiler(dyn, grid, robot.lower, robot.upper, cfg.compiler)(
+        basis, boundary
+    )
+    ref = solve_reference(robot, grid, basis, boundary, cfg.compiler, gradient="jax")
+    ours_cost = torque_costs_f64(robot, grid, np.asarray(ours.q), boundary.duration)
+    ok = np.asarray(ours.within_limits) & np.asarray(ours.finite)
+    gap = (ours_cost - ref.cost) / ref.cost
+    return {
+        "conditions": n,
+        "compared": int(ok.sum()),
+        "median_gap": float(np.median(gap[ok])),
+        "p95_gap": float(np.percentile(gap[ok], 95)),
+        "max_gap": float(np.max(gap[ok])),
+        "min_gap": float(np.min(gap[ok])),
+        "ours_iterations_median": float(np.median(np.asarray(ours.iterations))),
+        "slsqp_iterations_median": float(np.median(ref.iterations)),
+    }
+
+
+def _baseline_worker(payload):
+    robot, grid, basis, boundary, settings, gradient = payload
+    from slsqp_reference import solve_reference
+
+    t0 = time.perf_counter()
+    solve_reference(robot, grid, basis, boundary, settings, gradient=gradient)
+    return time.perf_counter() - t0
+
+
+def _slices(tree, parts: int):
+    n = jax.tree_util.tree_leaves(tree)[0].shape[0]
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+    return [jax.tree_util.tree_map(lambda a, lo=lo, hi=hi: a[lo:hi], tree)
+            for lo, hi in itertools.pairwise(bounds)]  # fmt: skip
+
+
+def baseline(cfg, robot, dyn, db, conds, n: int, workers: int) -> dict:
+    """SLSQP per condition (C MuJoCo FD gradients; analytic JAX gradients), sequential and pooled.
+
+    Each mode is warmed up on one condition first (JAX compile, imports), as ours is timed after
+    compilation. Seconds are for ``n`` conditions; ``per_condition_s`` scales to any count.
+    """
+    grid, basis, boundary = generation1_problems(cfg, robot, dyn, db, conds, n)
+    out = {}
+    ctx = mp.get_context("spawn")
+    for gradient in ("mujoco-fd", "jax"):
+        warm = (robot, grid, *jax.tree_util.tree_map(lambda a: a[:1], (basis, boundary)),
+                cfg.compiler, gradient)  # fmt: skip
+        _baseline_worker(warm)
+        seq = _baseline_worker((robot, grid, basis, boundary, cfg.compiler, gradient))
+        with ctx.Pool(workers) as pool:
+            pool.map(_baseline_worker, [warm] * workers)  # warm each worker
+            t0 = time.perf_counter()
+            parts = [(robot, grid, b, bc, cfg.compiler, gradient)
+                     for b, bc in _slices((basis, boundary), workers)]  # fmt: skip
+            pool.map(_baseline_worker, parts)
+            pooled = time.perf_counter() - t0
+        out[gradient] = {
+            "conditions_timed": n,
+            "sequential_per_condition_s": seq / n,
+            "pool_per_condition_s": pooled / n,
+            "workers": workers,
+        }
+    return out
+
+
+def first_generation_times(config: str, conditions: int) -> dict:
+    """Fresh processes: time to the first generation, cold and with a warm persistent cache."""
+    with tempfile.TemporaryDirectory() as cache:
+        out = {}
+        for label in ("cold", "warm_cache"):
+            cmd = [sys.executable, __file__, "--config", config, "--first-generation-only",
+                   "--cache-dir", cache, "--conditions", str(conditions)]  # fmt: skip
+            t0 = time.perf_counter()
+            res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            wall = time.perf_counter() - t0
+            inner = json.loads(res.stdout.strip().splitlines()[-1])
+            out[label] = {"process_wall_s": wall, **inner}
+        return out
+
+
+def _first_generation_only(args) -> None:
+    if args.cache_dir:
+        jax.config.update("jax_compilation_cache_dir", args.cache_dir)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    t0 = time.perf_counter()
+    cfg, robot, dyn, db, conds = build(load_config(args.config), args.conditions)
+    t1 = time.perf_counter()
+    res = time_generations(cfg, robot, dyn, db, conds, 1)
+    print(json.dumps({
+        "setup_s": t1 - t0,
+        "compile_s": res["compile_s"],
+        "compile_plus_first_generation_s": res["compile_s"] + res["first_generation_s"],
+        "to_first_generation_s": time.perf_counter() - t0,
+    }))  # fmt: skip
+
+
+def markdown(result: dict) -> str:
+    m = result["machine"]
+    lines = [
+        f"Machine: {m['device_kind']} ({m['platform']}, {m['cpu_count']} CPUs), jax {m['jax']}, "
+        f"{m['date']}. Command: `{m['command']}`",
+        "",
+        "| conditions | T | compile s | s / generation | generations / s | peak MiB |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in result["sweep"]:
+        lines.append(
+            f"| {r['conditions']} | {r['samples']} | {r['compile_s']:.1f} | "
+            f"{r['seconds_per_generation']:.4g} | {r['generations_per_s']:.3g} | "
+            f"{r['peak_memory_bytes'] / 2**20:.0f} |"
+        )
+    if "gap" in result:
+        g = result["gap"]
+        lines += ["", f"Optimality gap vs float64 SLSQP ({g['compared']} conditions): median "
+                  f"{100 * g['median_gap']:.4f} %, p95 {100 * g['p95_gap']:.4f} %, "
+                  f"max {100 * g['max_gap']:.3f} %"]  # fmt: skip
+    if "baseline" in result:
+        lines += ["", "| baseline (SLSQP per condition) | s / generation | ours / baseline |",
+                  "|---|---:|---:|"]  # fmt: skip
+        for name, r in result["baseline_ratios"].items():
+            lines.append(f"| {name} | {r['seconds_per_generation']:.4g} | {r['speedup']:.1f}x |")
+    if "first_generation" in result:
+        for k, v in result["first_generation"].items():
+            lines.append(
+                f"\nTime to first generation ({k}): {v['to_first_generation_s']:.1f} s "
+                f"(compile + first generation {v['compile_plus_first_generation_s']:.1f} s)"
+            )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default=str(ROOT / "configs" / "catch_ball.yaml"))
+    p.add_argument("--conditions", type=int, default=300, help="paper scale: 300")
+    p.add_argument(
+        "--sweep-conditions", default="", help="e.g. 30,100,1000 (default: --conditions)"
+    )
+    p.add_argument("--sweep-samples", default="", help="e.g. 50,200: extra runs at other T")
+    p.add_argument("--generations", type=int, default=4, help="timed generations per point")
+    p.add_argument("--gap-conditions", type=int, default=100, help="0 = skip the gap")
+    p.add_argument("--baseline-conditions", type=int, default=8, help="0 = skip the baseline")
+    p.add_argument("--workers", type=int, default=os.cpu_count())
+    p.add_argument("--no-first-generation", action="store_true")
+    p.add_argument("--first-generation-only", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--cache-dir", default="", help=argparse.SUPPRESS)
+    p.add_argument("--tag", default="", help="suffix of the JSON name (default: platform)")
+    p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
+    args = p.parse_args(argv)
+    if args.first_generation_only:
+        _first_generation_only(args)
+        return
+
+    cfg = load_config(args.config)
+    result = {"machine": machine_info(), "config": args.config, "sweep": []}
+    counts = [int(x) for x in args.sweep_conditions.split(",") if x] or [args.conditions]
+    paper = None
+    for c in counts:
+        state = build(cfg, c)
+        r = time_generations(*state, args.generations)
+        result["sweep"].append(r)
+        print(json.dumps({k: v for k, v in r.items() if k not in ("seconds", "db_cost_mean")}))
+        if c == args.conditions or paper is None:
+            paper = state
+    for t in [int(x) for x in args.sweep_samples.split(",") if x]:
+        cfg_t = config_from_dict(config_to_dict(cfg), [f"demos.samples={t}"])
+        r = time_generations(*build(cfg_t, args.conditions), args.generations)
+        result["sweep"].append(r)
+        print(json.dumps({k: v for k, v in r.items() if k not in ("seconds", "db_cost_mean")}))
+    ours_s = next(
+        (r["seconds_per_generation"] for r in result["sweep"]
+         if r["conditions"] == args.conditions and r["samples"] == cfg.demos.samples),
+        result["sweep"][0]["seconds_per_generation"],
+    )  # fmt: skip
+    m = int(paper[4].target.shape[0])
+    if args.gap_conditions:
+        result["gap"] = optimality_gap(*paper, min(args.gap_conditions, m))
+        print(json.dumps(result["gap"]))
+    if args.baseline_conditions:
+        result["baseline"] = baseline(*paper, min(args.baseline_conditions, m), args.workers)
+        ratios = {}
+        for grad, r in result["baseline"].items():
+            for mode in ("sequential", "pool"):
+                per_gen = r[f"{mode}_per_condition_s"] * m
+                ratios[f"{grad}, {mode}"] = {"seconds_per_generation": per_gen,
+                                             "speedup": per_gen / ours_s}  # fmt: skip
+        result["baseline_ratios"] = ratios
+        print(json.dumps(ratios))
+    if not args.no_first_generation:
+        result["first_generation"] = first_generation_times(args.config, args.conditions)
+    tag = args.tag or result["machine"]["platform"]
+    out = Path(args.out_dir) / f"generations_per_sec_{tag}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    table = markdown(result)
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    print(f"\nwritten: {out}")
+
+
+if __name__ == "__main__":
+    main()

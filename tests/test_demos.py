@@ -1,0 +1,278 @@
+"""Synthetic human-like catching demonstrations (`evojax_motion.demos`).
+
+The slow tests check the WHOLE default set (311 demonstrations, T = 100) of mahru_arm, generated
+once per module, plus a small arm6 set with its own catch region.
+"""
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from evojax_motion.database import HUMAN
+from evojax_motion.demos import (
+    CITATIONS,
+    ROBOT_PRESETS,
+    CatchRegion,
+    DemoSettings,
+    generate_demonstrations,
+    summarize_demonstrations,
+)
+from evojax_motion.dynamics import make_dynamics
+from evojax_motion.errors import UserError
+from evojax_motion.objective import torque_cost
+from evojax_motion.robot import load_robot, robot_from_mjcf_text
+from evojax_motion.timegrid import derivatives, make_time_grid
+
+TOL_END_SPEED = 1e-3  # [rad/s] joint speed at s = 0 and s = 1 (rest to rest)
+TOL_CATCH = 5e-3  # [m] hand at the end vs the catch point (the brief's limit)
+TOL_FK = 1e-5  # [m] float32 FK (dyn.site_pose) vs C MuJoCo mj_kinematics
+TOL_REGION = 1e-4  # [m, rad] catch points inside the configured sector
+SPEED_RIPPLE = 1e-3  # hand speed may dip this fraction of its peak and still count as one peak
+TOL_COST_REL = 1e-4  # stored cost vs objective.torque_cost recomputed
+HUMAN_DURATION_S = (0.4, 1.0)  # human reaching durations
+DURATION_NOISE_SIGMAS = 3.0  # Fitts' law noise is clipped at 3 standard deviations
+ARM6_REGION = CatchRegion("upper_link", (0.35, 0.6), (-30.0, 30.0), (-20.0, 20.0))
+TREE_ARM = Path(__file__).parent / "assets" / "tree_arm.xml"
+
+
+@pytest.fixture(scope="module")
+def mahru():
+    robot = load_robot("mahru_arm")
+    return robot, make_dynamics(robot, backend="rnea")
+
+
+@pytest.fixture(scope="module")
+def default_set(mahru):
+    robot, dyn = mahru
+    return generate_demonstrations(robot, dyn, DemoSettings(), jax.random.key(0))
+
+
+@pytest.fixture(scope="module")
+def hand(mahru, default_set):
+    """Hand positions ``(N, T, 3)`` along every demonstration, by dyn.site_pose."""
+    _, dyn = mahru
+    db, _ = default_set
+    fk = jax.jit(jax.vmap(jax.vmap(lambda q: dyn.site_pose(q)[0])))
+    return np.asarray(fk(jnp.asarray(db.q)))
+
+
+def _mj_site(robot, q):
+    d = mujoco.MjData(robot.mj_model)
+    d.qpos[robot.qpos_adr] = q
+    mujoco.mj_kinematics(robot.mj_model, d)
+    return d.site_xpos[robot.site_id].copy()
+
+
+def _end_speeds(db):
+    qd, _ = derivatives(make_time_grid(db.q.shape[1]), jnp.asarray(db.q), jnp.asarray(db.duration))
+    return np.abs(np.asarray(qd)[:, [0, -1]]).max(axis=(1, 2))
+
+
+@pytest.mark.slow
+def test_default_set_size_and_provenance(default_set):
+    db, report = default_set
+    assert db.q.shape == (311, 100, 7)
+    assert db.valid.all() and (db.origin == HUMAN).all() and (db.generation == 0).all()
+    assert report["synthetic"] is True and report["count"] == 311
+    assert "Flash & Hogan 1985" in report["description"] and "Fitts 1954" in report["description"]
+    assert any("Fitts (1954)" in c for c in report["citations"]) and len(CITATIONS) >= 5
+    assert report["candidates_valid"] >= 311 and report["candidates_tried"] >= 311
+    assert np.isfinite(db.q).all() and np.isfinite(db.cost).all() and (db.cost > 0).all()
+
+
+@pytest.mark.slow
+def test_every_demo_inside_joint_limits(mahru, default_set):
+    robot, _ = mahru
+    db, report = default_set
+    margin = np.minimum(db.q - robot.lower, robot.upper - db.q).min(axis=(0, 1))
+    assert np.all(margin >= np.deg2rad(DemoSettings().limit_margin_deg))
+    np.testing.assert_allclose(
+        list(report["min_limit_margin_deg"].values()), np.rad2deg(margin), atol=0.01
+    )
+
+
+@pytest.mark.slow
+def test_every_demo_starts_and_ends_at_rest(mahru, default_set):
+    robot, _ = mahru
+    db, _ = default_set
+    np.testing.assert_array_equal(db.q[:, 0], np.broadcast_to(robot.rest, (311, 7)).astype("f4"))
+    assert np.max(_end_speeds(db)) <= TOL_END_SPEED
+
+
+@pytest.mark.slow
+def test_every_demo_ends_on_its_catch_point(mahru, default_set, hand):
+    robot, _ = mahru
+    db, report = default_set
+    catch = np.asarray(report["catch_points"])
+    assert np.max(np.linalg.norm(hand[:, -1] - catch, axis=-1)) <= TOL_CATCH
+    np.testing.assert_allclose(db.condition, hand[:, -1], atol=TOL_FK)  # condition = FK at the end
+    for i in range(0, 311, 62):  # the JAX kinematics agree with C MuJoCo
+        np.testing.assert_allclose(_mj_site(robot, db.q[i, -1]), hand[i, -1], atol=TOL_FK)
+        np.testing.assert_allclose(_mj_site(robot, db.q[i, 50]), hand[i, 50], atol=TOL_FK)
+
+
+@pytest.mark.slow
+def test_catch_points_fill_the_region(default_set):
+    _, report = default_set
+    region = ROBOT_PRESETS["mahru_arm"].region
+    rel = np.asarray(report["catch_points"]) - np.asarray(report["region"]["centre_m"])
+    r = np.linalg.norm(rel, axis=1)
+    az = np.rad2deg(np.arctan2(rel[:, 1], rel[:, 0]))
+    el = np.rad2deg(np.arcsin(rel[:, 2] / r))
+    for value, (lo, hi) in (
+        (r, region.radius),
+        (az, region.azimuth_deg),
+        (el, region.elevation_deg),
+    ):
+        assert value.min() >= lo - TOL_REGION and value.max() <= hi + TOL_REGION
+        # low-discrepancy fill: every tenth of each range is populated
+        counts = np.histogram(value, bins=10, range=(lo, hi))[0]
+        assert counts.min() >= 10
+
+
+@pytest.mark.slow
+def test_hand_speed_is_single_peaked(default_set, hand):
+    db, _ = default_set
+    grid = make_time_grid(db.q.shape[1])
+    speed = np.linalg.norm(np.einsum("ts,nsk->ntk", grid.d1, hand), axis=-1) / db.duration[:, None]
+    peak = speed.max(axis=1)
+    k = speed.argmax(axis=1)
+    for i in range(len(speed)):
+        rise, fall = np.diff(speed[i, : k[i] + 1]), np.diff(speed[i, k[i] :])
+        assert rise.min(initial=0.0) >= -SPEED_RIPPLE * peak[i], i
+        assert fall.max(initial=0.0) <= SPEED_RIPPLE * peak[i], i
+    assert np.all((k > 10) & (k < 90))  # the peak is inside the motion, not at an end
+    assert np.max(speed[:, [0, -1]]) < 1e-3 * peak.min()
+
+
+@pytest.mark.slow
+def test_durations_follow_fitts_law(default_set, hand):
+    db, report = default_set
+    st = DemoSettings()
+    lo, hi = HUMAN_DURATION_S
+    assert db.duration.min() >= lo and db.duration.max() <= hi
+    travel = np.linalg.norm(hand[:, -1] - hand[:, 0], axis=1)
+    fitts = st.fitts_a + st.fitts_b * np.log2(np.maximum(2 * travel / st.target_width, 1.0))
+    ratio = db.duration / fitts
+    bound = np.exp(DURATION_NOISE_SIGMAS * st.duration_noise) * (1 + 1e-5)
+    stretched = ratio > bound
+    assert stretched.sum() <= report["duration_stretched"] <= 311 // 10
+    assert np.all(ratio >= 1 / bound)  # never shorter than Fitts' law allows
+    assert np.corrcoef(db.duration, fitts)[0, 1] > 0.5
+
+
+@pytest.mark.slow
+def test_costs_are_eq5_torque_costs(mahru, default_set):
+    _, dyn = mahru
+    db, _ = default_set
+    grid = make_time_grid(db.q.shape[1])
+    rows = np.array([0, 155, 310])
+    cost = jax.jit(jax.vmap(lambda q, d: torque_cost(dyn, grid, q, d)))(
+        jnp.asarray(db.q[rows]), jnp.asarray(db.duration[rows])
+    )
+    np.testing.assert_allclose(db.cost[rows], cost, rtol=TOL_COST_REL)
+
+
+@pytest.mark.slow
+def test_deterministic_for_a_key_and_different_for_another(mahru, default_set):
+    robot, dyn = mahru
+    db, _ = default_set
+    again, _ = generate_demonstrations(robot, dyn, DemoSettings(), jax.random.key(0))
+    for name, a, b in zip(db._fields, db, again):
+        assert np.array_equal(a, b), name
+    other, other_report = generate_demonstrations(robot, dyn, DemoSettings(), jax.random.key(1))
+    assert other.valid.sum() == 311
+    assert not np.allclose(other.condition, db.condition, atol=1e-3)
+    assert np.median(np.abs(other.duration - db.duration)) > 1e-3
+    assert np.max(_end_speeds(other)) <= TOL_END_SPEED
+    assert other_report["catch_miss_max_m"] <= TOL_CATCH
+
+
+@pytest.mark.slow
+def test_summary_matches_database(mahru, default_set):
+    robot, _ = mahru
+    db, report = default_set
+    summary = summarize_demonstrations(db, robot)
+    assert summary["count"] == 311 and summary["samples"] == 100
+    assert summary["duration_min_s"] == pytest.approx(float(db.duration.min()))
+    assert summary["duration_max_s"] == pytest.approx(float(db.duration.max()))
+    assert summary["duration_mean_s"] == pytest.approx(float(db.duration.mean()), rel=1e-6)
+    assert summary["min_limit_margin_deg"] == pytest.approx(
+        report["min_limit_margin_deg"], abs=0.01
+    )
+    assert summary["max_end_speed_rad_s"] <= TOL_END_SPEED
+    np.testing.assert_allclose(summary["catch_max_m"], db.condition.max(axis=0), atol=1e-4)
+
+
+@pytest.mark.slow
+def test_arm6_with_its_own_region():
+    robot = load_robot("arm6")
+    dyn = make_dynamics(robot, backend="rnea")
+    settings = DemoSettings(count=8, samples=32, region=ARM6_REGION)
+    db, report = generate_demonstrations(robot, dyn, settings, jax.random.key(3))
+    assert db.q.shape == (8, 32, 6) and db.valid.all()
+    assert np.all(db.q >= robot.lower) and np.all(db.q <= robot.upper)
+    np.testing.assert_array_equal(db.q[:, 0], np.broadcast_to(robot.rest, (8, 6)).astype("f4"))
+    assert np.max(_end_speeds(db)) <= TOL_END_SPEED
+    catch = np.asarray(report["catch_points"])
+    ends = np.stack([_mj_site(robot, q) for q in db.q[:, -1]])
+    assert np.max(np.linalg.norm(ends - catch, axis=1)) <= TOL_CATCH
+    centre = np.asarray(report["region"]["centre_m"])
+    np.testing.assert_allclose(centre, [0.05, 0.0, 0.78], atol=1e-6)  # upper_link origin
+    r = np.linalg.norm(catch - centre, axis=1)
+    assert r.min() >= ARM6_REGION.radius[0] - TOL_REGION
+    assert r.max() <= ARM6_REGION.radius[1] + TOL_REGION
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"count": 0}, "count"),
+        ({"samples": 4}, "samples"),
+        ({"fitts_a": -0.1}, "fitts_a"),
+        ({"duration_noise": 0.9}, "duration_noise"),
+        ({"arc_blend": 1.5}, "arc_blend"),
+        ({"comfort_joints": ("elbow",)}, "comfort_deg"),
+        ({"comfort_joints": ("elbow",), "comfort_deg": (1.0, 2.0)}, "comfort_deg"),
+        ({"posture_weight": (0.0,)}, "posture_weight"),
+        ({"posture_std_deg": (-1.0,)}, "posture_std_deg"),
+        ({"ik_iters": True}, "ik_iters"),
+    ],
+)
+def test_settings_validation_names_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=rf"^{field}: expected"):
+        DemoSettings(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"radius": (0.5, 0.3)}, "radius"),
+        ({"radius": (0.0, 0.3)}, "radius"),
+        ({"azimuth_deg": (-200.0, 0.0)}, "azimuth_deg"),
+        ({"elevation_deg": (10.0,)}, "elevation_deg"),
+        ({"frame": ""}, "frame"),
+    ],
+)
+def test_region_validation_names_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=rf"^{field}: expected"):
+        CatchRegion(**kwargs)
+
+
+def test_robot_specific_settings_are_checked_against_the_robot(mahru):
+    robot, dyn = mahru
+    cases = [
+        (DemoSettings(region=CatchRegion(frame="no_such_body")), "demos.region.frame"),
+        (DemoSettings(comfort_joints=("knee",), comfort_deg=(10.0,)), "demos.comfort_joints"),
+        (DemoSettings(posture_std_deg=(1.0, 2.0)), "demos.posture_std_deg"),
+    ]
+    for settings, where in cases:
+        with pytest.raises(UserError, match=where):
+            generate_demonstrations(robot, dyn, settings, jax.random.key(0))
+    custom = robot_from_mjcf_text("custom", TREE_ARM.read_text(), site="tip")
+    with pytest.raises(UserError, match=r"^demos\.region: robot 'custom' has no preset"):
+        generate_demonstrations(custom, make_dynamics(custom), DemoSettings(), jax.random.key(0))
