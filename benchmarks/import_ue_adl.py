@@ -3,8 +3,8 @@
 Runs `evojax_motion.mocap.import_trials` on all 10 subjects x 2 tasks x 5 trials of the right-arm
 reaching data, once for the default robot (mahru_arm) and once for arm6, and writes the statistics
 (trials imported, key-point RMS error after scaling per trial, median / p95, joint-limit contacts,
-timing) to ``benchmarks/results/import_ue_adl.json``. Also writes the imported databases beside it
-(``import_ue_adl_<robot>.npz``, git-ignored sizes are small) unless ``--no-save``.
+timing) to ``benchmarks/results/import_ue_adl.json``, and the imported databases to
+``runs/import_ue_adl_<robot>.npz`` (not committed) unless ``--no-save``.
 
     python benchmarks/import_ue_adl.py [--data ../shared/data/ue_adl] [--robots mahru_arm arm6]
 
@@ -78,7 +78,7 @@ def main(argv=None) -> int:
                 float(res.db.duration.max()),
             ]
             if not args.no_save:
-                save_database(HERE / "results" / f"import_ue_adl_{robot}.npz", res.db, res.meta)
+                save_database(HERE.parent / "runs" / f"import_ue_adl_{robot}.npz", res.db, res.meta)
         results["robots"][robot] = {
             "summary": summary,
             "trials": [

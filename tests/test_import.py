@@ -63,9 +63,22 @@ def _params(**kw):
     return ImportParams(**kw)
 
 
+# a subset of the sample (two subjects, both tasks): the IK batch is one chunk of 8
+SUBSET = tuple(
+    str(SAMPLE / f)
+    for f in (
+        "ADL004/ADL004AR1.csv",
+        "ADL004/ADL004AR4.csv",
+        "ADL004/ADL004FR1.csv",
+        "ADL004/ADL004FR3.csv",
+        "ADL009/ADL009FR2.csv",
+    )
+)
+
+
 @pytest.fixture(scope="module")
 def sample_mahru():
-    return import_trials(_params(paths=(str(SAMPLE),)))
+    return import_trials(_params(paths=SUBSET))
 
 
 def _final_site(robot, q):
@@ -80,7 +93,7 @@ def test_sample_imports_for_mahru(sample_mahru):
     res = sample_mahru
     robot = load_robot("mahru_arm")
     assert [r.status for r in res.reports] == ["imported"] * 5, format_report(res)
-    assert {r.name for r in res.reports} == {
+    assert {Path(r.path).relative_to(SAMPLE).as_posix() for r in res.reports} == {
         "ADL004/ADL004AR1.csv",
         "ADL004/ADL004AR4.csv",
         "ADL004/ADL004FR1.csv",
@@ -111,7 +124,7 @@ def test_sample_imports_for_mahru(sample_mahru):
 
 
 def test_sample_imports_for_arm6():
-    res = import_trials(_params(paths=(str(SAMPLE),), robot="arm6"))
+    res = import_trials(_params(paths=SUBSET, robot="arm6"))
     robot = load_robot("arm6")
     assert len(res.imported) == 5, format_report(res)
     assert res.meta.joint_names == robot.joint_names and res.db.q.shape[-1] == 6
@@ -144,7 +157,7 @@ def test_cli_writes_a_loadable_database_and_report(tmp_path, sample_mahru):
     np.testing.assert_allclose(db.q[0], alone.db.q[0], atol=1e-6)
     np.testing.assert_allclose(db.condition[0], alone.db.condition[0], atol=1e-6)
     # the shoulder centre is calibrated from fewer trials than in the whole sample
-    i = [r.name for r in sample_mahru.reports].index("ADL004/ADL004FR1.csv")
+    i = [r.name for r in sample_mahru.reports].index("ADL004FR1.csv")
     assert np.abs(db.q[0] - sample_mahru.db.q[i]).max() < np.deg2rad(TOL_CALIBRATION_DEG)
     report = json.loads(rep.read_text())
     assert report["summary"]["imported"] == 1 and report["trials"][0]["status"] == "imported"
@@ -217,7 +230,13 @@ def test_bad_trials_are_skipped_with_reasons(tmp_path, sample_mahru):
         str(tmp_path / "notes.csv"),
     ]
     assert _run(argv) == EXIT_SKIPPED
-    report = {t["name"]: t for t in json.loads((tmp_path / "r.json").read_text())["trials"]}
+    full = json.loads((tmp_path / "r.json").read_text())
+    assert full["summary"]["skipped_reasons"] == {
+        "unreadable file": 2,
+        "marker missing": 1,
+        "gap too long": 1,
+    }
+    report = {t["name"]: t for t in full["trials"]}
     assert report["ADL004FR1.csv"]["status"] == "imported"
     assert report["ADL004FR1.csv"]["frames_filled"] == 10
     assert "truncated" in report["ADL004FR3.csv"]["reason"]
@@ -228,7 +247,7 @@ def test_bad_trials_are_skipped_with_reasons(tmp_path, sample_mahru):
     assert db.q.shape[0] == 1
     # the filled gap barely changes the trial (the marker moves smoothly); the shoulder centre
     # is calibrated from fewer trials here
-    i = [r.name for r in sample_mahru.reports].index("ADL004/ADL004FR1.csv")
+    i = [r.name for r in sample_mahru.reports].index("ADL004FR1.csv")
     assert np.abs(db.q[0] - sample_mahru.db.q[i]).max() < np.deg2rad(TOL_CALIBRATION_DEG)
     # nothing importable: exit 2 and the old file stays as it was
     out.write_bytes(b"old")
@@ -408,3 +427,41 @@ def test_angles_csv_import(tmp_path):
     (tmp_path / "other.csv").write_text("time,a,b\n0,1,2\n0.01,1,2\n0.02,1,2\n")
     res = import_trials(_params(format="angles-csv", paths=(str(tmp_path / "other.csv"),)))
     assert res.db is None and "no column is named after a robot joint" in res.reports[0].reason
+
+
+REACH_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reach_real.yaml"
+
+
+def test_reach_real_config_names_the_imported_database():
+    from evojax_motion.config import load_config
+
+    cfg = load_config(REACH_CONFIG)
+    assert cfg.demos_file == "runs/reach_real_demos.npz"
+    assert cfg.robot.name == "mahru_arm"
+    assert cfg.basis.neighbours >= cfg.compiler.n_components + 1  # K components + a constant
+
+
+@pytest.mark.slow
+def test_training_on_the_imported_sample_lowers_the_cost(tmp_path):
+    """configs/reach_real.yaml on the shipped sample, shortened: the evolution's mean eq. 5 cost
+    falls from generation 1 to the last (the run completes on real human data). T = 32 keeps the
+    compile time small."""
+    from evojax_motion.config import load_config
+    from evojax_motion.train import run_training
+
+    demos = tmp_path / "demos.npz"
+    argv = ["--format", "vicon-csv", "--out", str(demos), "--quiet", "--samples", "32"]
+    assert _run([*argv, "--chunk", "8", str(SAMPLE)]) == EXIT_OK
+    cfg = load_config(
+        REACH_CONFIG,
+        [
+            f"demos_file={demos}",
+            "evolution.conditions=8",
+            "evolution.generations=3",
+            "compiler.max_iters=40",
+            "train.plots=false",
+        ],
+    )
+    summary = run_training(cfg, tmp_path / "run", progress=False)
+    assert summary["n_valid"] > 0
+    assert summary["db_cost_last"] < summary["db_cost_gen1"]

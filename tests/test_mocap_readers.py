@@ -46,11 +46,11 @@ def test_vicon_csv_reads_the_real_sample():
     d = read_vicon_csv(TRIAL)
     rows = _raw_rows(TRIAL)
     assert d.rate == 100.0
-    assert len(d.names) == 49 and d.names[:2] == ("RSHO1", "RSHO2")
-    assert d.positions.shape == (len([r for r in rows[5:] if r]), 49, 3)
+    assert len(d.names) == 29 and d.names[:2] == ("RSHO1", "RSHO2")
+    assert d.positions.shape == (len([r for r in rows[5:] if r]), 29, 3)
     # mm -> m, column by column, against the raw text
     first = rows[5]
-    i = d.index("RFB")
+    i = d.column("RFB")
     expect = np.array([float(x) for x in first[2 + 3 * i : 5 + 3 * i]]) / 1000.0
     np.testing.assert_allclose(d.positions[0, i], expect, atol=TOL_POS)
     # landmarks recorded only in the static trial are empty here, present there

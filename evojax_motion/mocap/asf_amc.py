@@ -145,7 +145,8 @@ def read_asf(path: str | os.PathLike, unit_scale: float | None = None) -> Skelet
     missing = [b for b in bones if b not in parent]
     if missing:
         raise TrialError(f"{path}: bones {missing[:3]} have no parent in :hierarchy")
-    order, placed = [], {"root"}
+    order: list[str] = []
+    placed = {"root"}
     while len(order) < len(bones):
         ready = [b for b in bones if b not in placed and parent[b] in placed]
         if not ready:

@@ -31,7 +31,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -139,6 +139,25 @@ class TrialReport:
     condition: list = field(default_factory=list)  # final hand position [m]
 
 
+_SKIP_CATEGORIES = (  # (words in the reason, category), first match wins
+    (("unreadable", "truncated", "cannot read", "not a "), "unreadable file"),
+    (("static trial", "calibration"), "calibration"),
+    (("missing", "never seen"), "marker missing"),
+    (("gap of",), "gap too long"),
+    (("no movement",), "no movement"),
+    (("too short",), "movement too short"),
+    (("key-point RMS", "IK "), "IK error too large"),
+)
+
+
+def skip_category(reason: str) -> str:
+    """A skipped trial's reason grouped for the summary (``"gap too long"``, ...)."""
+    for words, category in _SKIP_CATEGORIES:
+        if any(w in reason for w in words):
+            return category
+    return "other"
+
+
 class ImportResult:
     """Outcome of `import_trials`: the database (None if no trial survived) and the reports."""
 
@@ -157,7 +176,7 @@ class ImportResult:
         rms = np.array([r.rms_error_m for r in self.imported if np.isfinite(r.rms_error_m)])
         reasons: dict[str, int] = {}
         for r in self.skipped:
-            key = r.reason.split(":")[0]
+            key = skip_category(r.reason)
             reasons[key] = reasons.get(key, 0) + 1
         return {
             "trials": len(self.reports),
@@ -283,12 +302,13 @@ def _read_markers(path: Path, params: ImportParams, cache: dict) -> MarkerData:
 # ------------------------------------------------------------------------------------- pipeline
 
 
-class _Prepared:
-    """A trial ready for the IK: robot targets ``(F, K, 3)`` and its movement segment."""
+class _Prepared(NamedTuple):
+    """A trial ready for the IK: robot targets ``(F, K, 3)`` [m] and its movement segment."""
 
-    def __init__(self, report, targets, rate, segment, hand):
-        self.report, self.targets, self.rate, self.segment = report, targets, rate, segment
-        self.hand = hand
+    report: TrialReport
+    targets: np.ndarray
+    rate: float
+    segment: Any
 
 
 def _progress(iterable, total, desc, quiet):
@@ -441,19 +461,18 @@ def _prepare_markers(params, model, kp, rest_points, files, reports) -> list[_Pr
     needs_calibration = any(kd.between is not None or kd.cluster for kd in model.keypoints.values())
     for key, members in groups.items():
         static_data = None
-        if statics[key] is not None:
+        static = statics[key]
+        if static is not None:
             try:
-                static_data = _read_markers(statics[key], params, cache)
+                static_data = _read_markers(static, params, cache)
             except TrialError as e:
                 for i in members:
-                    calibs[i] = TrialError(f"static trial {statics[key].name}: {e}")
+                    calibs[i] = TrialError(f"static trial {static.name}: {e}")
                 continue
+        c: mk.Calibration | TrialError | None = None
         try:
-            c = (
-                mk.calibrate(model, static_data, [data[i] for i in members])
-                if needs_calibration
-                else None
-            )
+            if needs_calibration:
+                c = mk.calibrate(model, static_data, [data[i] for i in members])
         except TrialError as e:
             c = TrialError(f"calibration: {e}")
         for i in members:
@@ -487,7 +506,7 @@ def _prepare_markers(params, model, kp, rest_points, files, reports) -> list[_Pr
             r.segment_scale = np.round(scaled.robot_lengths / scaled.human_lengths, 4).tolist()
             r.onset_s = seg.onset / d.rate
             r.peak_hand_speed = seg.peak_speed
-            out.append(_Prepared(r, scaled.targets, d.rate, seg, human[:, -1]))
+            out.append(_Prepared(r, scaled.targets, d.rate, seg))
         except TrialError as e:
             r.reason = str(e)
     return out
@@ -495,7 +514,7 @@ def _prepare_markers(params, model, kp, rest_points, files, reports) -> list[_Pr
 
 def _filter_needed(d: MarkerData, needed, cutoff) -> np.ndarray:
     pos = d.positions.copy()
-    idx = [d.index(m) for m in needed]
+    idx = [d.column(m) for m in needed]
     pos[:, idx] = mk.lowpass(pos[:, idx], d.rate, cutoff)
     return pos
 

@@ -59,16 +59,17 @@ class MarkerData(NamedTuple):
     source: str
     up: np.ndarray
 
-    def index(self, name: str) -> int:
+    def column(self, name: str) -> int:
+        """Column of marker ``name`` in ``positions`` (axis 1)."""
         return self.names.index(name)
 
     def has(self, name: str) -> bool:
         """The marker is in the file and was seen in at least one frame."""
-        return name in self.names and bool(np.isfinite(self.positions[:, self.index(name)]).any())
+        return name in self.names and bool(np.isfinite(self.positions[:, self.column(name)]).any())
 
     def get(self, name: str) -> np.ndarray:
         """(F, 3) positions of one marker."""
-        return self.positions[:, self.index(name)]
+        return self.positions[:, self.column(name)]
 
 
 class AngleData(NamedTuple):
@@ -121,7 +122,7 @@ def fill_gaps(
 
     pos = data.positions.copy()
     n = pos.shape[0]
-    idx = [data.index(m) for m in needed]
+    idx = [data.column(m) for m in needed]
     seen = np.isfinite(pos[:, idx]).all(axis=-1)  # (F, k)
     for j, name in enumerate(needed):
         if not seen[:, j].any():
@@ -401,7 +402,7 @@ def _mean_seen(data: MarkerData, names: Sequence[str]) -> np.ndarray | None:
     """(k, 3) mean positions over the frames where all ``names`` are seen; None if never."""
     if not all(n in data.names for n in names):
         return None
-    p = data.positions[:, [data.index(n) for n in names]]
+    p = data.positions[:, [data.column(n) for n in names]]
     ok = np.isfinite(p).all(axis=(1, 2))
     return p[ok].mean(axis=0) if ok.any() else None
 
@@ -428,7 +429,7 @@ def calibrate(
                 if r is not None:
                     break
                 if all(n in m.names for n in names):
-                    p = m.positions[:, [m.index(n) for n in names]]
+                    p = m.positions[:, [m.column(n) for n in names]]
                     ok = np.flatnonzero(np.isfinite(p).all(axis=(1, 2)))
                     r = p[ok[0]] if ok.size else None
             if r is None:
@@ -453,7 +454,7 @@ def calibrate(
 
 
 def _cluster_frames(data: MarkerData, names: Sequence[str]) -> np.ndarray:
-    p = data.positions[:, [data.index(n) for n in names]]
+    p = data.positions[:, [data.column(n) for n in names]]
     return p
 
 

@@ -125,7 +125,9 @@ def robot_keypoints(
                     f"--keypoints {ref}: only the end-effector site {robot.site_name!r} can be a "
                     "key point (use a body otherwise)"
                 )
-            humans.append(human), refs.append(f"site:{name}"), ids.append(-1)
+            humans.append(human)
+            refs.append(f"site:{name}")
+            ids.append(-1)
             continue
         if kind not in ("", "body"):
             raise UserError(f"--keypoints {ref}: expected body:NAME or site:NAME")
@@ -135,7 +137,9 @@ def robot_keypoints(
             raise UserError(
                 f"--keypoints {ref}: robot {robot.name!r} has no body {name!r}; bodies: {bodies}"
             )
-        humans.append(human), refs.append(f"body:{name}"), ids.append(int(b))
+        humans.append(human)
+        refs.append(f"body:{name}")
+        ids.append(int(b))
     w = dict(DEFAULT_KEYPOINT_WEIGHTS.get(robot.name, {}))
     for key, value in (weights or {}).items():
         if key not in KEYPOINT_CHAIN or not (value >= 0 and np.isfinite(value)):
