@@ -42,6 +42,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+jax.config.update("jax_default_matmul_precision", "highest")  # no TF32 on GPUs (see timegrid)
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))

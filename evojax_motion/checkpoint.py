@@ -108,7 +108,7 @@ def restore_latest(
 
 
 def _check_restored(state, template, meta) -> str | None:
-    if jax.tree_util.tree_structure(state) != jax.tree_util.tree_structure(template):
+    if _paths(state) != _paths(template):
         return "structure differs from this run's state"
     for a, b in zip(jax.tree_util.tree_leaves(state), jax.tree_util.tree_leaves(template)):
         if a.shape != b.shape or a.dtype != b.dtype:
@@ -116,6 +116,10 @@ def _check_restored(state, template, meta) -> str | None:
     if meta.get("checksum") != tree_checksum(state):
         return "checksum mismatch (the data changed after it was written)"
     return None
+
+
+def _paths(tree) -> list[str]:
+    return [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
 
 
 def _first_line(e: Exception) -> str:

@@ -82,7 +82,12 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script. Returns the exit status."""
     try:
         args = build_parser().parse_args(argv)
-        return int(args.func(args) or 0)
+        import jax
+
+        # float32 matmuls on GPUs default to TF32; finite differences and the BC solves need full
+        # float32 (see timegrid), so every command runs at the highest matmul precision.
+        with jax.default_matmul_precision("highest"):
+            return int(args.func(args) or 0)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USER_ERROR

@@ -20,7 +20,7 @@ metrics measures how far evolved motions drift from it.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +34,9 @@ from evojax_motion.errors import UserError
 from evojax_motion.ik import solve_ik
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import TimeGrid
+
+if TYPE_CHECKING:
+    from evojax_motion.evolution import EvolutionSettings
 
 INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant
 
@@ -83,7 +86,7 @@ def make_conditions(
     db: Database,
     dyn: Dynamics,
     robot: Robot,
-    settings,
+    settings: EvolutionSettings,
     basis: BasisSettings,
     grid: TimeGrid,
     key: jax.Array,
@@ -95,6 +98,12 @@ def make_conditions(
     """
     m = settings.conditions
     lo, hi = sampling_box(db, settings.region_margin)
+    n_human = int(human_mask(db).sum())
+    if settings.min_neighbours > n_human:
+        raise UserError(
+            f"evolution.min_neighbours: expected <= the {n_human} demonstrations, "
+            f"got {settings.min_neighbours}"
+        )
     n_cand = m * settings.candidates_per_condition
     q = jnp.asarray(db.q)
     duration = jnp.asarray(db.duration)
@@ -148,7 +157,7 @@ def make_conditions(
 
 def conditions_to_tree(c: Conditions) -> dict:
     """Plain nested dict of numpy arrays (checkpoints)."""
-    out = {k: np.asarray(v) for k, v in c._asdict().items() if k != "boundary"}
+    out: dict[str, Any] = {k: np.asarray(v) for k, v in c._asdict().items() if k != "boundary"}
     out["boundary"] = {k: np.asarray(v) for k, v in c.boundary._asdict().items()}
     return out
 

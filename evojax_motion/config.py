@@ -42,7 +42,7 @@ class RobotConfig:
 
 @dataclass(frozen=True)
 class Config:
-    """A whole run. ``dynamics``: inverse-dynamics backend, ``rnea`` (fast) or ``mjx`` (reference)."""
+    """A whole run. ``dynamics``: inverse-dynamics backend, ``rnea`` (fast) or ``mjx``."""
 
     seed: int = 0
     robot: RobotConfig = field(default_factory=RobotConfig)
@@ -56,7 +56,9 @@ class Config:
 
     def __post_init__(self):
         if self.dynamics not in DYNAMICS_BACKENDS:
-            raise ValueError(f"dynamics: expected one of {DYNAMICS_BACKENDS}, got {self.dynamics!r}")
+            raise ValueError(
+                f"dynamics: expected one of {DYNAMICS_BACKENDS}, got {self.dynamics!r}"
+            )
 
 
 def _type_name(tp) -> str:

@@ -97,7 +97,7 @@ def humans_only(db: Database) -> Database:
 
 
 def save_database(path: str | os.PathLike, db: Database, meta: DatabaseMeta) -> Path:
-    """Write ``db`` and ``meta`` to ``path`` (.npz) atomically: a crash leaves the old file intact."""
+    """Write ``db`` and ``meta`` to ``path`` (.npz) atomically: a crash keeps the old file."""
     path = Path(path)
     arrays = {k: np.asarray(v) for k, v in db._asdict().items()}
     arrays.update(
@@ -121,6 +121,7 @@ def atomic_savez(path: Path, arrays: dict) -> Path:
             np.savez(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a database is an ordinary shared file
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -166,7 +167,7 @@ def validate_database(db: Database, meta: DatabaseMeta, where: str = "database")
     """Shapes agree, valid entries are finite with positive durations. Raises ``UserError``."""
     if db.q.ndim != 3:
         raise UserError(f"{where}: q must have shape (N, T, J), got {db.q.shape}")
-    n, t, j = db.q.shape
+    n, _, j = db.q.shape
     if len(meta.joint_names) != j:
         raise UserError(f"{where}: {len(meta.joint_names)} joint_names but q has {j} joint columns")
     expected = {"duration": (n,), "condition": (n, 3), "cost": (n,), "origin": (n,)}

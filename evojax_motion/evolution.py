@@ -14,16 +14,18 @@ generation (neighbours, PCA, optimisation, selection, metrics) is a single XLA p
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from evojax_motion.database import Database
-
-SLOT_LAYOUT = "slot n_human + c belongs to condition c"
+from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compile_optim import OptimSettings, make_optimisation_compiler
+from evojax_motion.database import EVOLVED, Database
+from evojax_motion.dynamics import Dynamics
+from evojax_motion.objective import torque_sum, trajectory_torques
+from evojax_motion.timegrid import TimeGrid, derivatives
 
 
 def _check(ok: bool, name: str, expected: str, value) -> None:
@@ -88,11 +90,6 @@ class EvolutionSettings:
             "a number > 0 [rad/s]",
             self.bc_velocity_tolerance,
         )
-
-
-def replace_settings(settings: EvolutionSettings, **changes) -> EvolutionSettings:
-    """``dataclasses.replace`` that keeps the validation (for tests and sweeps)."""
-    return dataclasses.replace(settings, **changes)
 
 
 class Selection(NamedTuple):
@@ -169,8 +166,6 @@ def init_evolved_slots(humans: Database, conditions) -> Database:
     Slot ``n_human + c`` gets condition c's target and duration (``valid=False`` until first
     filled, ``origin=EVOLVED``, ``cost=inf``). ``humans``: only valid human rows.
     """
-    from evojax_motion.database import EVOLVED
-
     t, j = humans.q.shape[1:]
     m = conditions.target.shape[0]
     dtype = humans.q.dtype
@@ -194,13 +189,11 @@ def _masked_mean(x, mask):
     return jnp.where(n > 0, jnp.sum(jnp.where(mask, x, 0.0)) / jnp.maximum(n, 1), jnp.nan)
 
 
-def boundary_errors(grid, q, boundary):
+def boundary_errors(grid: TimeGrid, q, boundary):
     """Largest start/end errors per primitive: ``(position [rad] (m,), velocity [rad/s] (m,))``.
 
     ``q: (m, T, J)``; NaN anywhere gives NaN (which every ``<=`` test rejects).
     """
-    from evojax_motion.timegrid import derivatives
-
     qd, _ = derivatives(grid, q, boundary.duration)
     pos = jnp.stack([q[:, 0] - boundary.q0, q[:, -1] - boundary.qf])
     vel = jnp.stack([qd[:, 0] - boundary.qd0, qd[:, -1] - boundary.qdf])
@@ -218,13 +211,13 @@ def rms_deviation_deg(q, q_ref):
 
 
 def make_generation_step(
-    dyn,
-    grid,
+    dyn: Dynamics,
+    grid: TimeGrid,
     lower,
     upper,
     n_human: int,
-    basis_settings,
-    optim_settings,
+    basis_settings: BasisSettings,
+    optim_settings: OptimSettings,
     settings: EvolutionSettings,
 ):
     """One generation as one jitted function ``step(db, conditions, generation)``.
@@ -248,23 +241,19 @@ def make_generation_step(
       joint-angle (velocity) error among the finite offspring;
     - ``converged_fraction``: offspring whose optimiser reported convergence.
     """
-    from evojax_motion.basis import pca_basis, select_neighbours
-    from evojax_motion.compile_optim import make_optimisation_compiler
-    from evojax_motion.objective import torque_sum, trajectory_torques
-
     compile_opt = make_optimisation_compiler(dyn, grid, lower, upper, optim_settings)
     n_components = optim_settings.n_components
 
     def step(db: Database, conditions, generation):
         nb = select_neighbours(
-            db.condition,
-            db.valid,
+            jnp.asarray(db.condition),
+            jnp.asarray(db.valid),
             conditions.target,
             basis_settings.neighbours,
             basis_settings.radius,
             basis_settings.w_pos,
         )
-        basis = pca_basis(db.q, db.duration, nb, n_components)
+        basis = pca_basis(jnp.asarray(db.q), jnp.asarray(db.duration), nb, n_components)
         off = compile_opt(basis, conditions.boundary)
 
         finite = off.finite & jnp.isfinite(off.cost)

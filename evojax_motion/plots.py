@@ -28,8 +28,13 @@ def _save(fig, path: Path) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def plot_costs(metrics: list[dict], path: str | Path) -> Path:
-    """Fig. 5: per generation, mean torque sum [N m] and mean eq. 5 cost of the evolved slots."""
+def plot_costs(metrics: list[dict], path: str | Path, baseline: dict | None = None) -> Path:
+    """Fig. 5: per generation, mean torque sum [N m] and mean eq. 5 cost of the evolved slots.
+
+    ``baseline``: ``human_only_torque_sum_mean`` / ``human_only_cost_mean`` (the human-only
+    interpolation of the same conditions), drawn as horizontal reference lines.
+    """
+    baseline = baseline or {}
     gen = np.array([r["generation"] for r in metrics])
 
     def col(name):
@@ -45,6 +50,10 @@ def plot_costs(metrics: list[dict], path: str | Path) -> Path:
     ax2.set_xlabel("generation")
     ax2.set_ylabel(r"0.5 $\int |\tau|^2 dt$ [N$^2$ m$^2$ s]")
     ax2.set_title("eq. 5 cost")
+    for ax, key in ((ax1, "human_only_torque_sum_mean"), (ax2, "human_only_cost_mean")):
+        if baseline.get(key) is not None:
+            ax.axhline(baseline[key], ls=":", color="tab:blue", label="human-only interpolation")
+    ax1.legend()
     ax2.legend()
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)

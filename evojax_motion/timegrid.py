@@ -1,8 +1,8 @@
 """Normalised time: samples, derivative operators and quadrature (DESIGN.md, conventions).
 
-A primitive is sampled at ``s_i = i / (T - 1)``, ``i = 0..T-1``, over normalised time ``s in [0, 1]``
-and carries its duration ``D``. Derivatives are fixed linear operators on the samples,
-``qd = (d1 @ q) / D`` and ``qdd = (d2 @ q) / D**2``; integrals over time are
+A primitive is sampled at ``s_i = i / (T - 1)``, ``i = 0..T-1``, over normalised time
+``s in [0, 1]`` and carries its duration ``D``. Derivatives are fixed linear operators on the
+samples, ``qd = (d1 @ q) / D`` and ``qdd = (d2 @ q) / D**2``; integrals over time are
 ``int f dt = D * sum_i w_i f(s_i)`` with trapezoid weights ``w`` (they sum to 1).
 
 The operators are 4th-order finite differences (Fornberg weights; centred inside, one-sided near the
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -89,6 +90,9 @@ def derivatives(grid: TimeGrid, q: jnp.ndarray, duration: jnp.ndarray):
     d = jnp.asarray(duration, q.dtype)[..., None, None]
     d1 = jnp.asarray(grid.d1, q.dtype)
     d2 = jnp.asarray(grid.d2, q.dtype)
-    qd = jnp.einsum("ts,...sj->...tj", d1, q) / d
-    qdd = jnp.einsum("ts,...sj->...tj", d2, q) / d**2
+    # HIGHEST: on GPUs float32 matmuls default to TF32 (10-bit mantissa), which ruins the
+    # cancellations of finite differences (end velocities, accelerations).
+    hi = jax.lax.Precision.HIGHEST
+    qd = jnp.einsum("ts,...sj->...tj", d1, q, precision=hi) / d
+    qdd = jnp.einsum("ts,...sj->...tj", d2, q, precision=hi) / d**2
     return qd, qdd

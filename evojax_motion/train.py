@@ -10,7 +10,7 @@ the jitted `evolution.make_generation_step`. The run folder holds:
 | ``robot.xml`` | the robot's MJCF |
 | ``metrics.jsonl`` | one JSON object per generation (fields: `METRIC_FIELDS`) |
 | ``checkpoints/<g>/`` | orbax checkpoint after generation g (0 = before the first): database, |
-| | conditions, generation index; metrics history and checksum as JSON |
+| | conditions, generation index; JSON: metrics so far, human-only baseline, checksum |
 | ``db_initial.npz``, ``db_gen1.npz``, ``db_final.npz`` | databases (``database.save_database``) |
 | ``plots/costs.png``, ``plots/joint_angles.png`` | Fig. 5 and Fig. 8 of the paper |
 | ``summary.json`` | the summary `run_training` returns |
@@ -65,21 +65,21 @@ class TrainSettings:
     """Run bookkeeping.
 
     - ``max_to_keep``: checkpoints kept (>= 2, so a damaged latest one has a predecessor).
-    - ``plot_condition``: index of the condition drawn in ``plots/joint_angles.png`` (Fig. 8).
+    - ``plot_condition``: index of the condition drawn in ``plots/joint_angles.png`` (Fig. 8);
+      ``null``: the one whose cost fell most from generation 1 to the last.
     - ``plots``: write the figures.
     """
 
     max_to_keep: int = 3
-    plot_condition: int = 0
+    plot_condition: int | None = None
     plots: bool = True
 
     def __post_init__(self):
         if not (isinstance(self.max_to_keep, int) and self.max_to_keep >= 2):
             raise ValueError(f"max_to_keep: expected an integer >= 2, got {self.max_to_keep!r}")
-        if not (isinstance(self.plot_condition, int) and self.plot_condition >= 0):
-            raise ValueError(
-                f"plot_condition: expected an integer >= 0, got {self.plot_condition!r}"
-            )
+        c = self.plot_condition
+        if c is not None and not (isinstance(c, int) and c >= 0):
+            raise ValueError(f"plot_condition: expected null or an integer >= 0, got {c!r}")
 
 
 # ----------------------------------------------------------------------------- run folder checks
@@ -176,6 +176,25 @@ def _human_costs(dyn, grid, humans):
     return np.asarray(cost, np.float32)
 
 
+def human_only_baseline(dyn, grid, conditions) -> dict:
+    """Eq. 5 cost and Fig. 5 torque sum of the human-only interpolations, averaged over the
+    conditions: what the demonstrations alone give before any evolution (``conditions.human_q``).
+    """
+    import jax
+
+    from evojax_motion.objective import cost_from_torques, torque_sum, trajectory_torques
+
+    def one(q, d):
+        tau = trajectory_torques(dyn, grid, q, d)
+        return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
+
+    cost, tsum = jax.jit(jax.vmap(one))(conditions.human_q, conditions.boundary.duration)
+    return {
+        "human_only_cost_mean": _json_value(np.mean(np.asarray(cost, np.float64))),
+        "human_only_torque_sum_mean": _json_value(np.mean(np.asarray(tsum, np.float64))),
+    }
+
+
 def _numpy_db(db):
     from evojax_motion.database import Database
 
@@ -190,11 +209,12 @@ def _log(msg: str) -> None:
 
 
 def initial_state(cfg: Config, robot, dyn, progress: bool = True):
-    """Generation 0 of ``cfg``: ``(db, conditions, meta, timings)``.
+    """Generation 0 of ``cfg``: ``(db, conditions, meta, baseline, timings)``.
 
     The human database (``demos_file`` or synthetic demonstrations), each primitive's eq. 5 cost
-    with this run's dynamics, the condition set drawn with the key ``fold_in(key(seed), 1)``, and
-    the database of capacity ``n_human + m`` with empty evolved slots. Writes nothing.
+    with this run's dynamics, the condition set drawn with the key ``fold_in(key(seed), 1)``, the
+    database of capacity ``n_human + m`` with empty evolved slots, and `human_only_baseline`.
+    Writes nothing.
     """
     import jax
 
@@ -215,8 +235,9 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key)
     conditions = jax.tree_util.tree_map(np.asarray, conditions)
     db = _numpy_db(init_evolved_slots(humans, conditions))
+    baseline = human_only_baseline(dyn, grid, conditions)
     timings = {"demos_seconds": t1 - t0, "conditions_seconds": time.perf_counter() - t1}
-    return db, conditions, meta, timings
+    return db, conditions, meta, baseline, timings
 
 
 def _restore(out: Path, manager, cfg: Config, robot):
@@ -256,10 +277,20 @@ def run_training(
 
     Returns the summary (also written to ``summary.json`` and printed): generations, eq. 5 cost
     and torque sum of generation 1 and of the last one with the reduction in %, the final
-    ``human_deviation_deg``, seconds per generation (execution; compile time separate), paths.
+    ``human_deviation_deg``, the human-only baseline (`human_only_baseline`), seconds per
+    generation (execution; compile and setup times separate), paths.
     Raises ``UserError`` before writing anything when ``out_dir`` is not usable (see
     `check_run_dir`), the demonstrations cannot be read or the condition set cannot be drawn.
     """
+    import jax
+
+    # On GPUs float32 matrix products default to TF32 (10-bit mantissa); the time grid's
+    # derivative operators would lose accelerations to it. Full precision, scoped to the run.
+    with jax.default_matmul_precision("highest"):
+        return _run_training(cfg, Path(out_dir), resume, progress)
+
+
+def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     import jax
     from tqdm.auto import tqdm
 
@@ -271,9 +302,8 @@ def run_training(
     from evojax_motion.workflow import make_robot_dynamics
 
     t_start = time.perf_counter()
-    out = Path(out_dir)
     evo, tr = cfg.evolution, cfg.train
-    if tr.plot_condition >= evo.conditions:
+    if tr.plot_condition is not None and tr.plot_condition >= evo.conditions:
         raise UserError(
             f"train.plot_condition: expected < evolution.conditions ({evo.conditions}), "
             f"got {tr.plot_condition}"
@@ -290,8 +320,9 @@ def run_training(
         db, conditions, start = _from_state_tree(restored.state)
         meta = meta_of(out)
         metrics = [dict(r) for r in restored.meta.get("metrics", [])][:start]
+        baseline = dict(restored.meta.get("baseline", {}))
     else:  # every UserError of the inputs is raised here, before anything is written
-        db, conditions, meta, timings = initial_state(cfg, robot, dyn, progress)
+        db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, progress)
         start, metrics = 0, []
 
     out.mkdir(parents=True, exist_ok=True)
@@ -301,7 +332,7 @@ def run_training(
         manager = ck.open_manager(out / CHECKPOINT_DIR, tr.max_to_keep)
     if restored is None:
         save_database(out / DB_INITIAL, db, meta)
-        ck.save_checkpoint(manager, 0, _state_tree(db, conditions, 0), {"metrics": []})
+        ck.save_checkpoint(manager, 0, _state_tree(db, conditions, 0), _meta([], baseline))
     ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
 
     n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
@@ -327,7 +358,7 @@ def run_training(
             metrics.append(row)
             if g == 1:  # kept for Fig. 8 (first vs last generation); written before checkpoint 1
                 save_database(out / DB_GEN1, db, meta)
-            ck.save_checkpoint(manager, g, _state_tree(db, conditions, g), {"metrics": metrics})
+            ck.save_checkpoint(manager, g, _state_tree(db, conditions, g), _meta(metrics, baseline))
             ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
             bar.update(1)
             bar.set_postfix(
@@ -341,9 +372,11 @@ def run_training(
         manager.close()
 
     save_database(out / DB_FINAL, db, meta)
-    plot_paths = _write_plots(out, cfg, robot, db, conditions, metrics, n_human) if tr.plots else []
+    plot_paths = []
+    if tr.plots:
+        plot_paths = _write_plots(out, cfg, robot, db, conditions, metrics, baseline, n_human)
     timings["total_seconds"] = time.perf_counter() - t_start
-    summary = _summary(out, metrics, timings, plot_paths)
+    summary = _summary(out, metrics, baseline, timings, plot_paths)
     summary["checkpoint_problems"] = problems
     summary["resumed_from"] = None if restored is None else int(restored.step)
     ck.atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, allow_nan=False) + "\n")
@@ -358,37 +391,44 @@ def meta_of(out: Path):
     return load_database(out / DB_INITIAL)[1]
 
 
-def _write_plots(out, cfg, robot, db, conditions, metrics, n_human) -> list[str]:
+def _write_plots(out, cfg, robot, db, conditions, metrics, baseline, n_human) -> list[str]:
     from evojax_motion.database import load_database
     from evojax_motion.plots import plot_costs, plot_joint_angles
 
     paths = []
     if metrics:
-        paths.append(str(plot_costs(metrics, out / PLOT_DIR / "costs.png")))
+        paths.append(str(plot_costs(metrics, out / PLOT_DIR / "costs.png", baseline=baseline)))
+    if not (out / DB_GEN1).is_file():
+        return paths
+    first, _ = load_database(out / DB_GEN1)
+    both = np.asarray(first.valid[n_human:]) & np.asarray(db.valid[n_human:])
     c = cfg.train.plot_condition
+    if c is None and both.any():  # the condition that changed most: the most telling Fig. 8
+        drop = np.where(both, first.cost[n_human:] - db.cost[n_human:], -np.inf)
+        c = int(np.argmax(drop))
+    if c is None or not both[c]:
+        return paths
     slot = n_human + c
-    if (out / DB_GEN1).is_file() and bool(db.valid[slot]):
-        first, _ = load_database(out / DB_GEN1)
-        if bool(first.valid[slot]):
-            target = [round(float(x), 3) for x in np.asarray(conditions.target[c])]
-            paths.append(
-                str(
-                    plot_joint_angles(
-                        first.q[slot],
-                        db.q[slot],
-                        float(db.duration[slot]),
-                        robot.joint_names,
-                        out / PLOT_DIR / "joint_angles.png",
-                        q_human=np.asarray(conditions.human_q[c]),
-                        last_label=f"generation {len(metrics)}",
-                        title=f"condition {c}: hand target {target} m (Fig. 8)",
-                    )
-                )
-            )
-    return paths
+    target = [round(float(x), 3) for x in np.asarray(conditions.target[c])]
+    path = plot_joint_angles(
+        first.q[slot],
+        db.q[slot],
+        float(db.duration[slot]),
+        robot.joint_names,
+        out / PLOT_DIR / "joint_angles.png",
+        q_human=np.asarray(conditions.human_q[c]),
+        last_label=f"generation {len(metrics)}",
+        title=f"condition {c}: hand target {target} m (Fig. 8)",
+    )
+    return [*paths, str(path)]
 
 
-def _summary(out: Path, metrics: list[dict], timings: dict, plots) -> dict:
+def _meta(metrics: list[dict], baseline: dict) -> dict:
+    """JSON beside a checkpoint's arrays: the metrics so far and the human-only baseline."""
+    return {"metrics": metrics, "baseline": baseline}
+
+
+def _summary(out: Path, metrics: list[dict], baseline: dict, timings: dict, plots) -> dict:
     first, last = (metrics[0], metrics[-1]) if metrics else ({}, {})
 
     def reduction(name):
@@ -406,6 +446,7 @@ def _summary(out: Path, metrics: list[dict], timings: dict, plots) -> dict:
         "torque_sum_reduction_pct": reduction("torque_sum_mean"),
         "human_deviation_deg": last.get("human_deviation_deg"),
         "n_valid": last.get("n_valid"),
+        **baseline,
         "seconds_per_generation": round(float(np.mean(secs)), 4) if secs else None,
     }
     summary.update({k: round(v, 3) for k, v in timings.items()})

@@ -38,9 +38,7 @@ def check_database_matches_robot(meta: DatabaseMeta, robot: Robot, where: str) -
         )
 
 
-def build_demonstrations(
-    cfg: Config, progress: bool = True
-) -> tuple[Database, DatabaseMeta, dict]:
+def build_demonstrations(cfg: Config, progress: bool = True) -> tuple[Database, DatabaseMeta, dict]:
     """The human demonstration database of a config: ``demos_file`` if set, else synthetic ones.
 
     Returns ``(db, meta, report)``; ``report`` is the summary printed by the CLI.

@@ -171,3 +171,143 @@ def test_settings_reject_bad_values(field, value):
 def test_settings_defaults_are_the_papers():
     s = EvolutionSettings()
     assert (s.conditions, s.generations) == (300, 10)
+
+
+# ----------------------------------------------- conditions and one generation on a small arm
+
+TOL_BC_POS = 1e-4  # [rad] float32 start/end angles of compiled trajectories
+TOL_COST_REL = 1e-4  # stored cost vs eq. 5 recomputed from the stored trajectory (float32)
+N_HUMAN, T_SAMPLES, M_COND = 40, 24, 5
+
+
+@pytest.fixture(scope="module")
+def small():
+    """A synthetic human database on the shipped arm (rest-to-rest, time-warped minimum-jerk
+    reaches to noisy comfortable postures), its condition set and a jitted generation step."""
+    import jax
+
+    from evojax_motion.basis import BasisSettings
+    from evojax_motion.compile_optim import OptimSettings
+    from evojax_motion.conditions import make_conditions
+    from evojax_motion.dynamics import make_dynamics
+    from evojax_motion.evolution import make_generation_step
+    from evojax_motion.objective import torque_cost
+    from evojax_motion.robot import load_robot
+    from evojax_motion.timegrid import make_time_grid
+
+    robot = load_robot("mahru_arm")
+    dyn = make_dynamics(robot, "rnea")
+    grid = make_time_grid(T_SAMPLES)
+    rng = np.random.default_rng(0)
+    lo, hi = robot.lower, robot.upper
+    comfort = np.clip(robot.rest + np.radians([0, 45, 10, 10, 60, 0, 0]), lo + 0.1, hi - 0.1)
+    qf = np.clip(comfort + rng.normal(0, 0.2, (N_HUMAN, robot.n_joints)), lo + 0.05, hi - 0.05)
+    # minimum jerk on a randomly warped time plus a rest-to-rest bump: varied shapes, so that the
+    # neighbours' PCA has several components (a plain scaled minimum jerk would span one)
+    s = np.asarray(grid.s, np.float64)[None, :, None]
+    w = s + rng.uniform(-0.4, 0.4, (N_HUMAN, 1, 1)) * s * (1 - s)
+    mj = 10 * w**3 - 15 * w**4 + 6 * w**5
+    bump = np.sin(np.pi * s) ** 2 * rng.normal(0, 0.1, (N_HUMAN, 1, robot.n_joints))
+    q = robot.rest + (qf - robot.rest)[:, None, :] * mj + bump
+    q = np.clip(q, lo + 0.01, hi - 0.01).astype(np.float32)
+    dur = rng.uniform(0.6, 0.9, N_HUMAN).astype(np.float32)
+    hand = np.asarray(jax.vmap(lambda x: dyn.site_pose(x)[0])(jnp.asarray(q[:, -1])))
+    cost = jax.jit(jax.vmap(lambda a, d: torque_cost(dyn, grid, a, d)))(q, dur)
+    humans = make_database(q, dur, hand, cost=np.asarray(cost))
+
+    basis = BasisSettings(radius=0.15, neighbours=6)
+    evo = EvolutionSettings(conditions=M_COND, generations=2, min_neighbours=3)
+    cond = make_conditions(humans, dyn, robot, evo, basis, grid, jax.random.key(3))
+    cond = jax.tree_util.tree_map(np.asarray, cond)
+    optim = OptimSettings(method="adam", max_iters=10)
+    step = make_generation_step(dyn, grid, lo, hi, N_HUMAN, basis, optim, evo)
+    return dict(
+        robot=robot, dyn=dyn, grid=grid, humans=humans, basis=basis, evo=evo, cond=cond,
+        step=step, torque_cost=torque_cost,
+    )  # fmt: skip
+
+
+@pytest.mark.slow
+def test_conditions_are_reachable_human_like_and_rest_to_rest(small):
+    import jax
+
+    robot, dyn, humans, cond = small["robot"], small["dyn"], small["humans"], small["cond"]
+    evo, basis = small["evo"], small["basis"]
+    b = cond.boundary
+    # targets come from the demonstrations' box and have enough human neighbours (recounted)
+    lo, hi = humans.condition.min(0), humans.condition.max(0)
+    assert ((cond.target >= lo) & (cond.target <= hi)).all()
+    dist = np.linalg.norm(cond.target[:, None] - humans.condition[None], axis=-1)
+    np.testing.assert_array_equal(cond.n_human_inside, (dist <= basis.radius).sum(1))
+    assert (cond.n_human_inside >= evo.min_neighbours).all()
+    # qf: reaches the target (forward kinematics, independently of the IK's own report)
+    hand = np.asarray(jax.vmap(lambda x: dyn.site_pose(x)[0])(jnp.asarray(b.qf)))
+    np.testing.assert_allclose(hand, cond.target, atol=evo.ik_tolerance)
+    assert (cond.ik_error <= evo.ik_tolerance).all()
+    assert ((b.qf >= robot.lower) & (b.qf <= robot.upper)).all()
+    # rest to rest; duration inside the demonstrations' range
+    np.testing.assert_allclose(b.q0, np.broadcast_to(robot.rest, b.q0.shape), atol=1e-6)
+    assert (b.qd0 == 0).all() and (b.qdf == 0).all()
+    assert ((b.duration >= humans.duration.min()) & (b.duration <= humans.duration.max())).all()
+    # the human-only interpolation meets the position BCs
+    np.testing.assert_allclose(cond.human_q[:, 0], b.q0, atol=TOL_BC_POS)
+    np.testing.assert_allclose(cond.human_q[:, -1], b.qf, atol=TOL_BC_POS)
+
+
+def test_conditions_refuse_impossible_settings():
+    from evojax_motion.basis import BasisSettings
+    from evojax_motion.conditions import make_conditions, sampling_box
+    from evojax_motion.errors import UserError
+
+    humans = _humans(n=5)
+    with pytest.raises(UserError, match=r"evolution\.region_margin"):
+        sampling_box(humans, -5.0)
+    settings = EvolutionSettings(conditions=2, min_neighbours=6)
+    with pytest.raises(UserError, match=r"evolution\.min_neighbours: expected <= the 5"):
+        make_conditions(humans, None, None, settings, BasisSettings(), None, None)
+
+
+@pytest.mark.slow
+def test_generation_step_rejects_selects_and_keeps_humans(small):
+    import jax
+
+    robot, dyn, grid, humans = small["robot"], small["dyn"], small["grid"], small["humans"]
+    cond, step, torque_cost = small["cond"], small["step"], small["torque_cost"]
+    # condition 0 ends beyond a joint limit (every offspring must leave the range); condition 1
+    # has a NaN final posture (non-finite offspring). The others are ordinary.
+    qf = cond.boundary.qf.copy()
+    qf[0, 4] = robot.upper[4] + 0.3
+    qf[1, :] = np.nan
+    cond = cond._replace(boundary=cond.boundary._replace(qf=qf))
+    db0 = init_evolved_slots(humans, cond)
+    db1, s1 = step(db0, cond, np.int32(1))
+    db2, s2 = step(db1, cond, np.int32(2))
+    assert step._cache_size() == 1  # the second generation reuses the compilation
+
+    n = N_HUMAN
+    v1, v2 = np.asarray(db1.valid[n:]), np.asarray(db2.valid[n:])
+    assert not v2[0] and not v2[1] and v1[2:].any(), s1  # the ordinary ones may fail too (few
+    for s, v in ((s1, v1), (s2, v2)):  # Adam steps), but not all of them
+        assert int(s.n_rejected_nonfinite) == 1 and int(s.n_rejected_limits) >= 1
+        assert int(s.n_valid) == v.sum()
+    assert int(s1.n_replaced) == v1.sum() and (v2 >= v1).all()
+
+    # humans untouched, bit for bit
+    for a, b in zip(db0, db2):
+        assert np.asarray(a)[:n].tobytes() == np.asarray(b)[:n].tobytes()
+    # survivors never get worse; stored costs are eq. 5 of the stored trajectories
+    c1, c2 = np.asarray(db1.cost[n:]), np.asarray(db2.cost[n:])
+    assert (c2[v1] <= c1[v1]).all()
+    q2, d2 = np.asarray(db2.q[n:]), np.asarray(db2.duration[n:])
+    recomputed = np.asarray(jax.vmap(lambda a, d: torque_cost(dyn, grid, a, d))(q2, d2))
+    np.testing.assert_allclose(c2[v2], recomputed[v2], rtol=TOL_COST_REL)
+    np.testing.assert_allclose(float(s2.db_cost_mean), c2[v2].mean(), rtol=1e-6)
+    # survivors meet the boundary conditions and the limits
+    np.testing.assert_allclose(q2[v2][:, 0], cond.boundary.q0[v2], atol=TOL_BC_POS)
+    np.testing.assert_allclose(q2[v2][:, -1], cond.boundary.qf[v2], atol=TOL_BC_POS)
+    assert ((q2[v2] >= robot.lower - 1e-5) & (q2[v2] <= robot.upper + 1e-5)).all()
+    # human deviation: RMS degrees from the human-only interpolation, averaged over the slots
+    dev = np.degrees(np.sqrt(((q2[v2] - cond.human_q[v2]) ** 2).mean(axis=(1, 2))))
+    np.testing.assert_allclose(float(s2.human_deviation_deg), dev.mean(), rtol=1e-5)
+    gen = np.asarray(db2.generation[n:])
+    assert set(gen[v2]) <= {1, 2} and (gen[~v2] == 0).all()

@@ -188,11 +188,13 @@ def test_tiny_run_outputs_and_invariants(tiny_run):
     assert [r["generation"] for r in rows] == list(range(1, g_total + 1))
     assert all(tuple(r) == METRIC_FIELDS for r in rows)
 
-    # db_cost_mean never increases (every slot is filled from generation 1, so the mean is over a
-    # fixed set: the per-slot property of survivor selection carries over to the mean)
-    assert all(r["n_valid"] == cfg.evolution.conditions for r in rows)
+    # db_cost_mean never increases over a fixed set of filled slots (a slot filled for the first
+    # time may be dearer than the mean; per slot, costs never increase: checked below)
     costs = [r["db_cost_mean"] for r in rows]
-    assert all(b <= a for a, b in itertools.pairwise(costs)), costs
+    pairs = [(a, b) for a, b in itertools.pairwise(rows) if a["n_valid"] == b["n_valid"]]
+    assert len(pairs) >= g_total - 2, [r["n_valid"] for r in rows]
+    assert all(b["db_cost_mean"] <= a["db_cost_mean"] for a, b in pairs), costs
+    assert [r["n_valid"] for r in rows] == sorted(r["n_valid"] for r in rows)
     assert all(r["n_replaced"] <= cfg.evolution.conditions for r in rows)
 
     # summary: the reduction gen 1 -> last and the human deviation, as in the metrics
@@ -217,9 +219,11 @@ def test_tiny_run_outputs_and_invariants(tiny_run):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), key
     # per slot: final cost <= generation-1 cost; generation index within 1..G
     ev = slice(n_human, None)
-    assert final.valid[ev].all() and gen1.valid[ev].all()
-    assert (final.cost[ev] <= gen1.cost[ev]).all()
-    assert ((final.generation[ev] >= 1) & (final.generation[ev] <= g_total)).all()
+    kept = gen1.valid[ev]
+    assert kept.any() and final.valid[ev][kept].all()
+    assert (final.cost[ev][kept] <= gen1.cost[ev][kept]).all()
+    gen = final.generation[ev][final.valid[ev]]
+    assert ((gen >= 1) & (gen <= g_total)).all() and gen.max() > 1  # later offspring survive
     assert (first.generation == 0).all() and not first.valid[ev].any()
 
     # files of the run
@@ -393,3 +397,13 @@ def test_cli_refuses_another_configs_run(tiny_run, capsys):
     status = main(["train", str(TINY), "--out", str(out)])  # same config, no --resume
     assert status == 2 and "pass --resume" in capsys.readouterr().err
     assert _snapshot(out) == before
+
+
+@pytest.mark.parametrize(
+    "field, value", [("max_to_keep", 1), ("plot_condition", -1), ("plot_condition", 1.5)]
+)
+def test_train_settings_reject_bad_values(field, value):
+    from evojax_motion.train import TrainSettings
+
+    with pytest.raises(ValueError, match=rf"^{field}: expected"):
+        TrainSettings(**{field: value})
