@@ -75,6 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
     from evojax_motion.mocap.importer import add_import_parser
 
     add_import_parser(sub)
+
+    from evojax_motion.report import add_report_parser
+
+    add_report_parser(sub)
     return parser
 
 

@@ -50,7 +50,6 @@ WORKER_TIMEOUT_S = 600.0
 PROBE_TIMEOUT_S = 120.0
 BALL_RADIUS = 0.035  # [m], a tennis ball
 BALL_RGBA = (1.0, 0.55, 0.0, 1.0)
-GRAVITY = np.array([0.0, 0.0, -9.81])
 _DISABLED = ("disable", "disabled", "off", "false", "0")
 
 
@@ -66,6 +65,7 @@ VIEWS = {
     "front": View("front", 180.0, -8.0),
     "side": View("side", 90.0, -8.0),
     "three_quarter": View("three_quarter", 145.0, -18.0),
+    "catch": View("catch", 105.0, -5.0),  # from the right, a little ahead: the ball's arc
 }
 
 
@@ -143,16 +143,23 @@ def segments(robot: Robot, q) -> Segments:
     m = robot.mj_model
     d = mujoco.MjData(m)
     g = mujoco.mjtGeom
-    kept, axis, half = [], [], []
+    kept: list[int] = []
+    axis: list[int] = []
+    half: list[float] = []
     for i in range(m.ngeom):
         t, size = int(m.geom_type[i]), m.geom_size[i]
         if t in (int(g.mjGEOM_CAPSULE), int(g.mjGEOM_CYLINDER)):
-            kept.append(i), axis.append(2), half.append(size[1])
+            k, length = 2, float(size[1])
         elif t in (int(g.mjGEOM_BOX), int(g.mjGEOM_ELLIPSOID)):
             k = int(np.argmax(size))
-            kept.append(i), axis.append(k), half.append(size[k])
+            length = float(size[k])
         elif t == int(g.mjGEOM_SPHERE):
-            kept.append(i), axis.append(2), half.append(0.0)
+            k, length = 2, 0.0
+        else:
+            continue
+        kept.append(i)
+        axis.append(k)
+        half.append(length)
     idx = np.asarray(kept, int)
     radius = np.array(
         [
@@ -238,7 +245,8 @@ def fit_camera(
     tan_x = tan_y * aspect
     # a point at depth z (along the view) is inside when |x| <= (distance + z) tan_x, same for y
     distance = float(np.max(np.maximum(np.abs(x) / tan_x, np.abs(y) / tan_y) - z))
-    return Camera(tuple(map(float, centre)), margin * distance, view.azimuth, view.elevation)
+    lookat = (float(centre[0]), float(centre[1]), float(centre[2]))
+    return Camera(lookat, margin * distance, view.azimuth, view.elevation)
 
 
 def floor_height(robot: Robot, motions: Sequence[np.ndarray]) -> float:
@@ -250,16 +258,23 @@ def floor_height(robot: Robot, motions: Sequence[np.ndarray]) -> float:
     return float(min(lows))
 
 
-def ball_flight(target, duration: float, times, start_offset=(1.6, -0.3, 0.5)) -> np.ndarray:
-    """Positions ``(F, 3)`` [m] at ``times (F,)`` [s] of a ball that flies ballistically (gravity
-    only) from ``target + start_offset`` at t = 0 into ``target`` at t = ``duration``, and stays
-    there (caught). A picture aid: the compilers only see the catch point."""
-    target = np.asarray(target, float)
-    p0 = target + np.asarray(start_offset, float)
-    v0 = (target - p0 - 0.5 * GRAVITY * duration**2) / duration
-    t = np.minimum(np.asarray(times, float), duration)[:, None]
-    flight = p0 + v0 * t + 0.5 * GRAVITY * t**2
-    return np.where(t >= duration, target, flight)  # exactly at the catch point once caught
+def catch_frames(robot: Robot, t_motion, q, ball_times, ball, catch_time: float, times):
+    """Arm and ball of a catch at ``times (F,)`` [s after the ball's release].
+
+    ``t_motion (T,)``: the motion's uniform time grid [s after release], ``q (T, J)``: the arm
+    rests at ``q[0]`` before it and holds ``q[-1]`` after; ``ball_times (S,)``, ``ball (S, 3)``:
+    the flight, linearly interpolated until ``catch_time``; from then on the ball sits at the
+    hand (the end-effector site). Returns ``q (F, J)``, ``ball (F, 3)``.
+    """
+    times = np.asarray(times, float)
+    t_motion = np.asarray(t_motion, float)
+    q_f = resample(q, times - t_motion[0], t_motion[-1] - t_motion[0])
+    ball = np.asarray(ball, float)
+    ball_f = np.stack([np.interp(times, ball_times, ball[:, k]) for k in range(3)], axis=1)
+    caught = times >= catch_time
+    if caught.any():
+        ball_f[caught] = site_positions(robot, q_f[caught])
+    return q_f, ball_f
 
 
 # ------------------------------------------------------------------------------- GL (MuJoCo)
@@ -289,7 +304,7 @@ def _job_arrays(robot, q, cameras, balls, width, height, floor, sky=True) -> dic
     }
 
 
-def _add_geom(scene, gtype, size, pos, rgba) -> None:
+def _add_geom(scene, gtype, size, pos, rgba, emission: float = 0.0) -> None:
     """Append a decoration geom (not part of the model) to a ``mjvScene``."""
     if scene.ngeom >= scene.maxgeom:
         return
@@ -301,6 +316,7 @@ def _add_geom(scene, gtype, size, pos, rgba) -> None:
         np.eye(3).reshape(-1),
         np.asarray(rgba, np.float32),
     )
+    scene.geoms[scene.ngeom].emission = emission
     scene.ngeom += 1
 
 
@@ -382,6 +398,7 @@ def render_in_process(job: dict) -> np.ndarray:
                     (BALL_RADIUS, 0, 0),
                     ball,
                     BALL_RGBA,
+                    emission=0.4,  # bright from any side
                 )
             out[f] = renderer.render()
     return out
@@ -392,6 +409,9 @@ def _worker_env(backend: str) -> dict:
     env["MUJOCO_GL"] = backend
     env["PYOPENGL_PLATFORM"] = backend  # mujoco.egl / mujoco.osmesa refuse a mismatch
     env.setdefault("JAX_PLATFORMS", "cpu")  # the worker never needs an accelerator
+    # The child imports this package the way the parent found it, installed or not.
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
     return env
 
 
@@ -471,7 +491,8 @@ def render_mujoco(
 
     ``cameras``: one for all frames or one per frame; ``balls (F, 3)`` [m] draws a ball where
     finite; ``floor``: z [m] of a floor plane (None: none); ``backend``: a GL backend (None:
-    `gl_status`'s); ``sky``: a gradient sky, else a black background. Raises `RenderUnavailable` when no backend works.
+    `gl_status`'s); ``sky``: a gradient sky, else a black background. Raises
+    `RenderUnavailable` when no backend works.
     """
     backend = backend or gl_status().backend
     if backend is None:
@@ -592,21 +613,24 @@ def render_motion(
     """Frames of ``q (F, J)``: MuJoCo when a GL backend works, else the stick-figure fallback.
 
     ``renderer``: ``"auto"``, ``"mujoco"`` (raise `RenderUnavailable` without GL) or ``"stick"``.
+    ``Frames.renderer`` says which drew them, and why the fallback was needed when MuJoCo failed.
     """
     if renderer not in ("auto", "mujoco", "stick"):
         raise ValueError(f"renderer: expected auto, mujoco or stick, got {renderer!r}")
+    used = "stick figure"
     if renderer != "stick":
         status = gl_status()
         if status.available:
             try:
                 images = render_mujoco(robot, q, cameras, balls, width, height, floor)
                 return Frames(images, f"mujoco ({status.backend})")
-            except RenderUnavailable:
+            except RenderUnavailable as e:
                 if renderer == "mujoco":
                     raise
+                used = f"stick figure (MuJoCo rendering failed: {e})"
         elif renderer == "mujoco":
             raise RenderUnavailable(status.message)
-    return Frames(render_sticks(robot, q, cameras, balls, width, height, floor), "stick figure")
+    return Frames(render_sticks(robot, q, cameras, balls, width, height, floor), used)
 
 
 def snapshot_times(duration: float, count: int) -> np.ndarray:
@@ -628,7 +652,11 @@ def save_gif(images: np.ndarray, path: str | os.PathLike, fps: float = 20.0) -> 
 
     from evojax_motion.checkpoint import atomic_write_bytes
 
-    frames = [Image.fromarray(np.asarray(im, np.uint8)) for im in images]
+    # An adaptive palette per frame (octree keeps small saturated areas such as the ball).
+    frames = [
+        Image.fromarray(np.asarray(im, np.uint8)).quantize(256, Image.Quantize.FASTOCTREE)
+        for im in images
+    ]
     buf = io.BytesIO()
     frames[0].save(
         buf,

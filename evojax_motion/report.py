@@ -14,14 +14,16 @@ Files written (paper figure; run files needed, in brackets the optional ones):
 - ``fig7_snapshots.png``: snapshots, front and side, first vs last generation (Fig. 7; db_gen1,
   db_final);
 - ``fig9_snapshots.png``: the same for interpolation vs optimisation (Fig. 9; db_final, config);
-- ``catch.gif``: an online catch (sec. 3.2) on the last database (db_final, config);
+- ``catch.gif``: a thrown ball caught online (sec. 3.2) with the last database (db_final, config);
 - ``report.html``: all of the above, images inlined (base64).
 
-The condition is ``--condition`` (default: the config's ``train.plot_condition``; when its slot is
-empty in a database another is chosen and the page says so). Fig. 10, Fig. 9 and the catch use the
-last database *without the condition's own evolved primitive* (leave-one-out), so that the
+The condition is ``--condition`` (default: the config's ``train.plot_condition``, or when that is
+null, as in ``train.py``, the condition whose cost fell most from generation 1 to the last; when
+its slot is empty in a database another is chosen and the page says so). Fig. 10 and Fig. 9 use
+the last database *without the condition's own evolved primitive* (leave-one-out), so that the
 interpolation compiler sees what it would for a new target and cannot copy the optimised answer.
 The boundary conditions are the evolved slot's (rest start, IK final posture, rest to rest).
+The catch animation throws a ball through the condition's catch point (`catch_animation`).
 
 Snapshots come from MuJoCo's offscreen renderer when an OpenGL backend works (`render.gl_status`),
 else from the matplotlib stick-figure fallback, labelled as such; the plots never need GL.
@@ -53,6 +55,12 @@ RUN_FILES = (CONFIG_FILE, METRICS_FILE, DB_INITIAL, DB_GEN1, DB_FINAL)
 REPORT_DIR, HTML_FILE = "report", "report.html"
 INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant (as conditions.py)
 BASIS_COMPONENTS = 4  # Fig. 4: "their first four dominant principal components"
+# The thrown ball of catch.gif: released this far from the catch point [m] (in front, a little to
+# the right), passing it THROW_SLACK [s] after a motion started at the reaction time would end.
+THROW_OFFSET = np.array([1.5, -0.3, 0.0])
+THROW_SLACK = 0.1
+GIF_ABOVE = 0.5  # [m] the animation frames the ball's path up to this above the catch point
+GIF_SPEED = 0.5  # playback speed of catch.gif (half speed)
 
 # figure file -> (title, run files it needs, caption)
 FIGURES: dict[str, tuple[str, tuple[str, ...], str]] = {
@@ -102,9 +110,9 @@ FIGURES: dict[str, tuple[str, tuple[str, ...], str]] = {
     "catch.gif": (
         "An online catch",
         (DB_FINAL, CONFIG_FILE),
-        "The online query (sec. 3.2: neighbours, human-like IK, interpolation within the joint "
-        "limits) for the condition's catch point on the last database (leave-one-out); the "
-        "ball's flight is a picture aid.",
+        "A ball thrown through the condition's catch point and caught with the last database: "
+        "the catch planner picks where and when, the online process (sec. 3.2: neighbours, "
+        "human-like IK, interpolation within the joint limits) moves the arm. Half speed.",
     ),
 }
 
@@ -248,8 +256,17 @@ def _pick_condition(data: RunData, requested: int | None, notes: list[str]) -> t
     m = ref.q.shape[0] - n_human
     if m <= 0:
         raise UserError(f"{data.run_dir}: its databases hold no evolved slot (no condition)")
-    default = data.config.train.plot_condition if data.config is not None else 0
-    c = default if requested is None else requested
+    c = requested
+    if c is None and data.config is not None:
+        c = data.config.train.plot_condition
+    if c is None:  # as train.py: the condition whose cost fell most, the most telling Fig. 8
+        c = 0
+        if data.db_gen1 is not None and data.db_final is not None:
+            first, last = data.db_gen1[0], data.db_final[0]
+            both = np.asarray(first.valid[n_human:]) & np.asarray(last.valid[n_human:])
+            if both.any():
+                drop = np.where(both, first.cost[n_human:] - last.cost[n_human:], -np.inf)
+                c = int(np.argmax(drop))
     if not 0 <= c < m:
         raise UserError(f"--condition: expected an index in 0..{m - 1}, got {c}")
     filled = np.ones(m, bool)
@@ -265,7 +282,18 @@ def _pick_condition(data: RunData, requested: int | None, notes: list[str]) -> t
     return c, n_human + c
 
 
-def _context(data: RunData, requested: int | None, notes: list[str]) -> Context:
+def condition_context(
+    data: RunData, requested: int | None = None, notes: list[str] | None = None
+) -> Context:
+    """The robot, dynamics (None without a config), time grid and one condition of a run.
+
+    ``requested``: condition index (None: the config's ``train.plot_condition``); when its slot is
+    empty in a database read, the first filled one is taken and ``notes`` says so. The boundary
+    conditions are the evolved primitive's own end points (rest start, IK final posture, zero end
+    velocities). Raises `UserError` for an index out of range.
+    """
+    import jax.numpy as jnp
+
     from evojax_motion.compile_interp import Boundary
     from evojax_motion.render import robot_from_meta
     from evojax_motion.timegrid import make_time_grid
@@ -278,7 +306,7 @@ def _context(data: RunData, requested: int | None, notes: list[str]) -> Context:
         from evojax_motion.dynamics import make_dynamics
 
         dyn = make_dynamics(robot, backend=data.config.dynamics)
-    c, slot = _pick_condition(data, requested, notes)
+    c, slot = _pick_condition(data, requested, [] if notes is None else notes)
     q = np.asarray(db.q[slot], np.float32)
     j = q.shape[1]
     dur = float(db.duration[slot])
@@ -286,9 +314,13 @@ def _context(data: RunData, requested: int | None, notes: list[str]) -> Context:
         q0, qf = q[0], q[-1]
     else:  # an empty slot: rest to the IK posture is unknown; rest to rest keeps plots possible
         q0 = qf = np.asarray(robot.rest, np.float32)
-    zeros = np.zeros((1, j), np.float32)
+    zeros = jnp.zeros((1, j), jnp.float32)
     boundary = Boundary(
-        q0=q0[None], qf=qf[None], qd0=zeros, qdf=zeros, duration=np.asarray([dur], np.float32)
+        q0=jnp.asarray(q0[None]),
+        qf=jnp.asarray(qf[None]),
+        qd0=zeros,
+        qdf=zeros,
+        duration=jnp.asarray([dur], jnp.float32),
     )
     return Context(
         robot=robot,
@@ -303,7 +335,7 @@ def _context(data: RunData, requested: int | None, notes: list[str]) -> Context:
     )
 
 
-def _neighbour_basis(db, target, basis_settings, n_components: int, exclude=None):
+def neighbour_basis(db, target, basis_settings, n_components: int, exclude=None):
     """``(Neighbours, Basis)`` of one target on ``db`` (row ``exclude`` left out)."""
     import jax.numpy as jnp
 
@@ -324,16 +356,16 @@ def _neighbour_basis(db, target, basis_settings, n_components: int, exclude=None
     return nb, basis
 
 
-def _interpolate(db, ctx: Context, basis_settings, exclude=None) -> np.ndarray:
+def interpolate(db, ctx: Context, basis_settings, exclude=None) -> np.ndarray:
     """Eq. 1-2 trajectory ``(T, J)`` of the condition on ``db``."""
     from evojax_motion.compile_interp import compile_interpolation
 
-    _, basis = _neighbour_basis(db, ctx.target, basis_settings, INTERP_COMPONENTS, exclude)
+    _, basis = neighbour_basis(db, ctx.target, basis_settings, INTERP_COMPONENTS, exclude)
     out = compile_interpolation(basis, ctx.boundary, ctx.grid, n_components=INTERP_COMPONENTS)
     return np.asarray(out.q[0])
 
 
-def _cost(ctx: Context, q) -> tuple[float, float]:
+def motion_cost(ctx: Context, q) -> tuple[float, float]:
     """Eq. 5 cost and torque sum [N m] of ``q (T, J)``."""
     import jax.numpy as jnp
 
@@ -366,7 +398,7 @@ def plot_basis(data: RunData, ctx: Context, path: Path, joint: str | None = None
         rows.append((f"learned database (generation {gen})", data.db_final[0]))
     names = list(ctx.robot.joint_names)
     fits = [
-        (title, db, *_neighbour_basis(db, ctx.target, basis_settings, BASIS_COMPONENTS))
+        (title, db, *neighbour_basis(db, ctx.target, basis_settings, BASIS_COMPONENTS))
         for title, db in rows
     ]
     if joint is None:  # the joint the human neighbours vary most in
@@ -411,9 +443,14 @@ def plot_basis(data: RunData, ctx: Context, path: Path, joint: str | None = None
     return _save(fig, path)
 
 
-def plot_tradeoff(metrics: list[dict], path: Path) -> Path:
-    """Per generation: mean eq. 5 cost against mean ``human_deviation_deg``, in order."""
+def plot_tradeoff(metrics: list[dict], path: Path, baseline: dict | None = None) -> Path:
+    """Per generation: mean eq. 5 cost against mean ``human_deviation_deg``, in order.
+
+    ``baseline`` (``summary.json``): its ``human_only_cost_mean`` is drawn at deviation 0, the
+    human-only interpolation of the same conditions (the starting point of the trade-off).
+    """
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     gen = np.array([r["generation"] for r in metrics])
 
@@ -422,12 +459,19 @@ def plot_tradeoff(metrics: list[dict], path: Path) -> Path:
 
     dev, cost = col("human_deviation_deg"), col("db_cost_mean")
     fig, ax = plt.subplots(figsize=(6, 4.2))
+    human = (baseline or {}).get("human_only_cost_mean")
+    if human is not None:
+        ax.plot([0.0], [human], "s", color="tab:blue", label="human-only interpolation")
+        ax.plot([0.0, dev[0]], [human, cost[0]], ":", color="0.6", lw=1, zorder=1)
+        ax.legend(fontsize=8)
     ax.plot(dev, cost, "-", color="0.6", lw=1, zorder=1)
     sc = ax.scatter(dev, cost, c=gen, cmap="viridis", s=40, zorder=2)
     for g, x, y in zip(gen, dev, cost):
         if np.isfinite(x) and np.isfinite(y):
             ax.annotate(str(g), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
-    fig.colorbar(sc, ax=ax, label="generation")
+    bar = fig.colorbar(sc, ax=ax, label="generation")
+    bar.locator = MaxNLocator(integer=True)
+    bar.update_ticks()
     ax.set_xlabel("deviation from human-only interpolation [deg RMS]")
     ax.set_ylabel(r"mean eq. 5 cost [N$^2$ m$^2$ s]")
     ax.set_title("optimality vs human-likeness per generation")
@@ -435,7 +479,7 @@ def plot_tradeoff(metrics: list[dict], path: Path) -> Path:
     return _save(fig, path)
 
 
-def _snapshot_figure(frames, row_labels, times, path: Path, title: str, renderer: str) -> Path:
+def snapshot_figure(frames, row_labels, times, path: Path, title: str, renderer: str) -> Path:
     """Grid of rendered frames ``(rows, cols, H, W, 3)`` with row labels and times [s]."""
     import matplotlib.pyplot as plt
 
@@ -483,13 +527,13 @@ def _render_batches(
     return out, frames.renderer
 
 
-def _optimise(data: RunData, ctx: Context) -> np.ndarray:
+def optimise(data: RunData, ctx: Context) -> np.ndarray:
     """Eq. 3-5 trajectory ``(T, J)`` of the condition on the last database (leave-one-out)."""
     from evojax_motion.compile_optim import make_optimisation_compiler
 
     cfg = data.config
     settings = cfg.compiler
-    _, basis = _neighbour_basis(
+    _, basis = neighbour_basis(
         data.db_final[0],
         ctx.target,
         cfg.basis,
@@ -507,17 +551,59 @@ def _online_catch(data: RunData, ctx: Context):
     """The online query (`online.make_online_generator`) for the condition's catch point."""
     from evojax_motion.online import make_online_generator, online_database, to_numpy
 
-    db = data.db_final[0]
-    valid = np.asarray(db.valid).copy()
-    valid[ctx.slot] = False
     gen = make_online_generator(ctx.robot, ctx.dyn, ctx.grid, data.config.basis)
     res = gen(
-        online_database(db._replace(valid=valid)),
+        online_database(data.db_final[0]),
         np.asarray(ctx.target, np.float32)[None],
         np.asarray([ctx.duration], np.float32),
         np.asarray(ctx.robot.rest, np.float32)[None],
     )
     return to_numpy(res)
+
+
+def catch_animation(data: RunData, ctx: Context, frames: int, notes: list[str]):
+    """A ball thrown through the condition's catch point, caught on the last database.
+
+    The ball is released `THROW_OFFSET` from the catch point, timed to pass it when a motion of
+    the condition's duration started after the reaction time would end (+ `THROW_SLACK`);
+    `catching.make_catcher` plans where and when to catch it and generates the motion. Should it
+    find no catch, the online query to the catch point itself is shown, timed to the ball.
+    Returns ``q (F, J)``, ``ball (F, 3)`` at ``frames`` instants and the real-time fps.
+    """
+    import jax
+
+    from evojax_motion import render as rnd
+    from evojax_motion.catching import CatchSettings, explain_plan, make_catcher
+    from evojax_motion.online import online_database
+
+    settings = CatchSettings()
+    gravity = np.asarray(ctx.robot.mj_model.opt.gravity, float)
+    t_pass = settings.reaction_time + ctx.duration + THROW_SLACK
+    p0 = ctx.target + THROW_OFFSET
+    v0 = (ctx.target - p0 - 0.5 * gravity * t_pass**2) / t_pass
+    catcher = make_catcher(ctx.robot, ctx.dyn, ctx.grid, data.config.basis, None, settings)
+    rest = np.asarray(ctx.robot.rest, np.float32)[None]
+    f32 = np.float32
+    db = online_database(data.db_final[0])
+    plan, motion = jax.device_get(catcher(db, p0[None].astype(f32), v0[None].astype(f32), rest))
+    ball_t, ball = np.asarray(plan.times[0], float), np.asarray(plan.ball[0], float)
+    release = f"ball released at {np.round(p0, 2).tolist()} m, {np.round(v0, 2).tolist()} m/s"
+    if bool(plan.feasible[0]):
+        t_motion, q, t_catch = motion.t[0], motion.q[0], float(plan.catch_time[0])
+        notes.append(f"catch.gif: {release}; {explain_plan(plan, 0)}")
+    else:
+        online = _online_catch(data, ctx)
+        t_catch = t_pass
+        t_motion = online.t[0] + (t_pass - float(online.duration[0]))
+        q = online.q[0]
+        notes.append(
+            f"catch.gif: {release}; no catch planned ({explain_plan(plan, 0)}); "
+            "shown: the online query to the catch point"
+        )
+    t_end = 1.25 * t_catch  # hold the catch a moment
+    times = np.linspace(0.0, t_end, frames)
+    q_f, ball_f = rnd.catch_frames(ctx.robot, t_motion, q, ball_t, ball, t_catch, times)
+    return q_f, ball_f, frames / t_end
 
 
 def make_report(
@@ -546,6 +632,15 @@ def make_report(
     data = load_run(run_dir)
     out = Path(out_dir) if out_dir is not None else data.run_dir / REPORT_DIR
     rep = Report(out_dir=out, problems=dict(data.problems))
+    # Options are checked before anything is written (status 2 leaves no partial report).
+    ctx = None
+    if any(x is not None for x in (data.db_initial, data.db_gen1, data.db_final)):
+        ctx = condition_context(data, condition, rep.notes)
+        rep.condition = ctx.condition
+        if joint is not None and joint not in ctx.robot.joint_names:
+            raise UserError(
+                f"--joint: expected one of {list(ctx.robot.joint_names)}, got {joint!r}"
+            )
     say = (lambda msg: None) if quiet else _log
     for msg in rep.problems.values():
         say(f"warning: {msg}")
@@ -576,13 +671,13 @@ def make_report(
 
     out.mkdir(parents=True, exist_ok=True)
     if not blocked("fig5_costs.png"):
-        wrote("fig5_costs.png", plot_costs(data.metrics, out / "fig5_costs.png"))
+        fig5 = plot_costs(data.metrics or [], out / "fig5_costs.png", baseline=data.summary)
+        wrote("fig5_costs.png", fig5)
     if not blocked("tradeoff.png"):
-        wrote("tradeoff.png", plot_tradeoff(data.metrics, out / "tradeoff.png"))
+        trade = plot_tradeoff(data.metrics or [], out / "tradeoff.png", baseline=data.summary)
+        wrote("tradeoff.png", trade)
 
-    if any(x is not None for x in (data.db_initial, data.db_gen1, data.db_final)):
-        ctx = _context(data, condition, rep.notes)
-        rep.condition = ctx.condition
+    if ctx is not None:
         _condition_figures(
             data,
             ctx,
@@ -622,7 +717,11 @@ def _condition_figures(
     if not blocked("fig4_basis.png"):
         wrote("fig4_basis.png", plot_basis(data, ctx, out / "fig4_basis.png", joint))
 
-    q_first = q_last = q_interp = q_opt = None
+    # Any: each is set exactly when the figures that use them are not blocked
+    q_first: Any = None
+    q_last: Any = None
+    q_interp: Any = None
+    q_opt: Any = None
     if data.db_gen1 is not None and data.db_final is not None:
         q_first = np.asarray(data.db_gen1[0].q[ctx.slot])
         q_last = np.asarray(data.db_final[0].q[ctx.slot])
@@ -631,7 +730,7 @@ def _condition_figures(
         if data.db_initial is not None and data.config is not None:
             from evojax_motion.database import humans_only
 
-            q_human = _interpolate(humans_only(data.db_initial[0]), ctx, data.config.basis)
+            q_human = interpolate(humans_only(data.db_initial[0]), ctx, data.config.basis)
         wrote(
             "fig8_generations.png",
             plot_joint_angles(
@@ -649,15 +748,21 @@ def _condition_figures(
 
     if data.db_final is not None and data.config is not None:
         say("compiling the condition by interpolation and by optimisation (JAX compile) ...")
-        q_interp = _interpolate(data.db_final[0], ctx, data.config.basis, exclude=ctx.slot)
-        q_opt = _optimise(data, ctx)
+        q_interp = interpolate(data.db_final[0], ctx, data.config.basis, exclude=ctx.slot)
+        q_opt = optimise(data, ctx)
     if not blocked("fig10_interp_vs_optim.png"):
-        ci, ti = _cost(ctx, q_interp)
-        co, to = _cost(ctx, q_opt)
+        ci, ti = motion_cost(ctx, q_interp)
+        co, to = motion_cost(ctx, q_opt)
         rep.notes.append(
             f"condition {ctx.condition}: interpolation cost {ci:.4g} "
             f"(torque sum {ti:.4g} N m), optimisation {co:.4g} ({to:.4g} N m)"
         )
+        if co > ci:
+            opt = data.config.compiler
+            rep.notes.append(
+                f"the optimisation compiler ended above the interpolation's cost "
+                f"(compiler.method {opt.method}, max_iters {opt.max_iters}): its budget is small"
+            )
         wrote(
             "fig10_interp_vs_optim.png",
             plot_joint_angles(
@@ -682,20 +787,16 @@ def _condition_figures(
         jobs["fig7_snapshots.png"] = (["generation 1", f"generation {last_gen}"], [q_first, q_last])
     if not blocked("fig9_snapshots.png"):
         jobs["fig9_snapshots.png"] = (["interpolation", "optimisation"], [q_interp, q_opt])
-    catch = None
+    catch: Any = None
     if animation and not blocked("catch.gif"):
-        catch = _online_catch(data, ctx)
-        if not bool(catch.ok[0]):
-            rep.notes.append(
-                "the online catch is not flagged ok (outside the learned region, "
-                "unreachable or outside the limits); shown anyway"
-            )
+        say("planning and generating a catch (JAX compile) ...")
+        catch = catch_animation(data, ctx, gif_frames, rep.notes)
     elif not animation:
         rep.skipped["catch.gif"] = "--no-animation"
     batches, layout = [], []
     motions = [q for _, qs in jobs.values() for q in qs]
     if catch is not None:
-        motions.append(np.asarray(catch.q[0]))
+        motions.append(catch[0])
     if not motions:
         return
     floor = rnd.floor_height(robot, motions)
@@ -708,19 +809,19 @@ def _condition_figures(
                 batches.append(_Batch(fq, [cam], ball_target))
                 layout.append((name, f"{label}\n{view.name}"))
     if catch is not None:
-        dur = float(catch.duration[0])
-        hold = max(gif_frames // 4, 1)  # the catch is held a moment at the end
-        t = np.linspace(0.0, dur, gif_frames)
-        q_gif = rnd.resample(catch.q[0], t, dur)
-        q_gif = np.concatenate([q_gif, np.repeat(q_gif[-1:], hold, axis=0)])
-        balls = rnd.ball_flight(catch.target[0], dur, np.concatenate([t, np.full(hold, dur)]))
-        balls[-hold:] = rnd.site_positions(robot, q_gif[-1:])  # caught: in the hand
-        cam = rnd.fit_camera(robot, [q_gif], rnd.VIEWS["three_quarter"], balls[gif_frames // 2 :])
+        q_gif, balls, _ = catch
+        low = balls[:, 2] <= ctx.target[2] + GIF_ABOVE  # the ball falls into the picture
+        cam = rnd.fit_camera(robot, [q_gif], rnd.VIEWS["catch"], balls[low])
         batches.append(_Batch(q_gif, [cam], balls))
         layout.append(("catch.gif", ""))
     say(f"rendering {sum(len(b.q) for b in batches)} frames ...")
-    images, used = _render_batches(robot, batches, renderer, width, height, floor)
+    try:
+        images, used = _render_batches(robot, batches, renderer, width, height, floor)
+    except rnd.RenderUnavailable as e:  # only with --renderer mujoco
+        raise UserError(f"--renderer mujoco: {e}") from None
     rep.renderer = used
+    if used.startswith("stick") and used != "stick figure":
+        say(f"warning: {used}")
     by_name: dict[str, tuple[list[str], list[np.ndarray]]] = {}
     for (name, label), im in zip(layout, images):
         by_name.setdefault(name, ([], []))
@@ -733,9 +834,9 @@ def _condition_figures(
     for name, (labels, ims) in by_name.items():
         path = out / name
         if name == "catch.gif":
-            wrote(name, rnd.save_gif(ims[0], path, fps=gif_frames / max(ctx.duration, 0.3) / 2))
+            wrote(name, rnd.save_gif(ims[0], path, fps=catch[2] * GIF_SPEED))
             continue
-        wrote(name, _snapshot_figure(np.stack(ims), labels, times, path, titles[name], used))
+        wrote(name, snapshot_figure(np.stack(ims), labels, times, path, titles[name], used))
 
 
 # ------------------------------------------------------------------------------------ HTML
@@ -748,8 +849,11 @@ def _data_uri(path: Path) -> str:
 
 def _summary_rows(data: RunData) -> list[tuple[str, str]]:
     if data.summary:
-        keep = [k for k, v in data.summary.items() if not isinstance(v, (list, dict))]
-        return [(k, str(data.summary[k])) for k in keep]
+        rows = []
+        for k, v in data.summary.items():
+            if not isinstance(v, (list, dict)):
+                rows.append((k, f"{v:.5g}" if isinstance(v, float) else str(v)))
+        return rows
     if data.metrics:
         first, last = data.metrics[0], data.metrics[-1]
         rows = [("generations", str(last["generation"]))]
@@ -850,6 +954,9 @@ def add_report_parser(subparsers) -> None:
 
 def run_report(args) -> int:
     """The ``report`` subcommand: 0 complete, 1 incomplete run folder (figures still written)."""
+    from evojax_motion.online_cli import enable_compile_cache
+
+    enable_compile_cache()  # a second report of a run skips most of the XLA compile time
     rep = make_report(
         args.run_dir,
         args.out,
