@@ -1,4 +1,4 @@
-"""Figures of a training run (matplotlib, Agg backend; every file written atomically).
+"""Figures of a training run (matplotlib; every file written atomically).
 
 - `plot_costs`: cost per generation, the paper's Fig. 5 ("the average of the sum of required torque
   for each movement primitive database"): ``torque_sum_mean`` [N m] and the eq. 5 cost.
@@ -12,16 +12,14 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
 from evojax_motion.checkpoint import atomic_write_bytes
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
+    """Write ``fig`` as PNG to ``path`` atomically and close it."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     plt.close(fig)
@@ -58,7 +56,7 @@ def plot_costs(metrics: list[dict], path: str | Path, baseline: dict | None = No
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
         ax.xaxis.get_major_locator().set_params(integer=True)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def plot_joint_angles(
@@ -88,4 +86,4 @@ def plot_joint_angles(
     axes[-1, 0].set_xlabel("time [s]")
     if title:
         axes[0, 0].set_title(title)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))

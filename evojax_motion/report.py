@@ -379,9 +379,9 @@ def motion_cost(ctx: Context, q) -> tuple[float, float]:
 
 
 def _save(fig, path: Path) -> Path:
-    from evojax_motion.plots import _save as save_png
+    from evojax_motion.plots import save_figure
 
-    return save_png(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_basis(data: RunData, ctx: Context, path: Path, joint: str | None = None) -> Path:
