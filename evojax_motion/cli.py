@@ -76,7 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_import_parser(sub)
 
+    from evojax_motion.online_cli import add_online_parsers
     from evojax_motion.report import add_report_parser
+
+    add_online_parsers(sub)
 
     add_report_parser(sub)
     return parser
