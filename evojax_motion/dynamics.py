@@ -6,8 +6,10 @@ end-effector site pose. `make_dynamics` returns both as pure, un-jitted single-s
 callers vmap over samples and conditions and jit at the top.
 
 Backends (both return C MuJoCo's ``mj_inverse`` ``qfrc_inverse`` for the controlled dofs):
-  - ``"rnea"``: recursive Newton-Euler compiled from the ``mjModel`` into one fused JAX graph
-    (`dynamics_rnea`); hinge/slide joints, chains and trees. The fast path (tens of times MJX).
+  - ``"rnea"``: recursive Newton-Euler compiled from the ``mjModel`` into a straight-line JAX
+    graph (`dynamics_rnea`); hinge/slide joints, chains and trees. The fast path: its layout is
+    chosen for the default JAX backend (``dynamics_rnea.default_form``), since XLA's CPU and GPU
+    compilers favour different ones.
   - ``"mjx"``: ``mujoco.mjx.inverse`` / ``mjx.kinematics`` (`dynamics_mjx`); the reference.
 Joints the robot does not control are held at ``qpos0``, at rest. With armature, damping or
 stiffness in the model both backends add ``armature*qdd + damping*qd + stiffness*(q - springref)``
@@ -64,10 +66,13 @@ def make_dynamics(robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32)
     if jax.dtypes.canonicalize_dtype(dtype) != dtype:
         raise UserError("dtype: float64 needs jax x64 enabled (jax.enable_x64(True))")
     if backend == "rnea":
-        from evojax_motion.dynamics_rnea import make_rnea as make
+        from evojax_motion.dynamics_rnea import make_rnea
+
+        fns = make_rnea(robot, dtype)  # layout for the default JAX backend
     else:  # lazily: importing mujoco.mjx is slow and noisy
-        from evojax_motion.dynamics_mjx import make_mjx as make
-    fns = make(robot, dtype)
+        from evojax_motion.dynamics_mjx import make_mjx
+
+        fns = make_mjx(robot, dtype)
     return Dynamics(
         robot=robot,
         backend=backend,

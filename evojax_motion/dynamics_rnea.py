@@ -16,15 +16,22 @@ moves its segment relative to its parent segment by ``M_j = C0_j + s_j C1_j + c_
 and ``s = displacement, c = 0`` for a slide. Bodies no controlled joint moves take their pose
 from ``mj_kinematics`` at ``qpos0`` and carry no controlled joint's weight.
 
-Evaluation (JAX, per sample). Forward kinematics is a chain of J 3x4 products (the only
-sequential part). The rest is vectorised over the J segments in the world frame, with twists,
-accelerations and wrenches taken at the world origin (Featherstone's spatial algebra):
-    v = A (S qd),    a = A (S qdd + v_parent x S qd) - g,    f = I a + v x* I v,
-    tau = S . (A^T f)
-where ``A[j, i] = 1`` if joint ``i`` is ``j`` or one of its ancestors: tree sums become one
-constant product. All small products are written as broadcast multiply-sums, so XLA fuses them
-and GPUs never route them through TF32 matmuls. About a hundred JAX ops per model, so compiling
-a vmapped value-and-grad takes seconds.
+Evaluation (JAX, per sample), in the world frame, with twists, accelerations and wrenches
+taken at the world origin (Featherstone's spatial algebra):
+    W_j = W_parent M_j,    v_j = v_parent + S_j qd_j,
+    a_j = a_parent + S_j qdd_j + v_parent x (S_j qd_j)    (a_base = -g: gravity for all),
+    f_j = I_j a_j + v_j x* I_j v_j,    tau_j = S_j . (f_j + sum of the children's wrenches),
+with ``S_j`` the joint's motion subspace, read from ``W_j`` (a joint's axis and anchor do not
+move under the joint itself). Two layouts of the same straight-line graph (`FORMS`), because
+XLA's CPU and GPU compilers want different ones (figures in benchmarks/results/
+dynamics_throughput_*.json):
+  - ``"vector"`` (CPU default): arrays over the J segments; tree sums are products with the
+    constant ancestor matrix ``A[j, i] = 1`` if ``i`` is ``j`` or an ancestor of it. About 300 ops,
+    no gathers or scatters; a vmapped value-and-grad compiles in seconds.
+  - ``"scalar"`` (GPU default): every component is a scalar and model constants are Python
+    floats, so products with 0 and 1 vanish at trace time (an axis-aligned joint costs a fraction
+    of a general one) and after vmap the pass is one elementwise kernel: ~1 kFLOP and ~0.1 kB per
+    evaluation for a 7-DOF arm, 8x the vector form on an H100 (3x for value-and-grad).
 
 Constraints, contacts, gravity compensation and fluid forces are not modelled (refused where
 they would change ``qfrc_inverse`` and can be seen in the model).
@@ -32,17 +39,21 @@ they would change ``qfrc_inverse`` and can be seen in the model).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax import lax
 
 from evojax_motion.errors import UserError
 
 _HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
 _SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
+FORMS = ("vector", "scalar")
 _LAST_COLUMN = np.array([0.0, 0.0, 0.0, 1.0], np.float32)  # weak enough: exact 0/1 in any dtype
 
 
@@ -86,6 +97,14 @@ def _generators(kind: int, axis: np.ndarray, anchor: np.ndarray) -> tuple[np.nda
     return g1, g2
 
 
+def _disabled(m: mujoco.MjModel, flag: str, older_name: str | None = None) -> bool:
+    """Whether <flag> `flag` is disabled (MuJoCo < 3.3 had one "passive" flag for both)."""
+    bit = getattr(mujoco.mjtDisableBit, flag, None)
+    if bit is None and older_name is not None:
+        bit = getattr(mujoco.mjtDisableBit, older_name)
+    return bool(int(m.opt.disableflags) & int(bit))  # type: ignore[arg-type]
+
+
 def _model_name(m: mujoco.MjModel) -> str:
     return m.names.split(b"\x00", 1)[0].decode()
 
@@ -93,7 +112,7 @@ def _model_name(m: mujoco.MjModel) -> str:
 def _check_supported(m: mujoco.MjModel, moving: np.ndarray) -> None:
     """Refuse model features whose forces `mj_inverse` would add but this RNEA does not."""
     where = f"model '{_model_name(m)}'"
-    for b in np.nonzero(moving)[0]:
+    for b in map(int, np.nonzero(moving)[0]):
         for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
             if m.jnt_type[j] not in (_HINGE, _SLIDE):
                 name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
@@ -148,7 +167,7 @@ def _reduce_tree(m: mujoco.MjModel, joint_ids: list[int]) -> _Tree:
     body_offset = np.zeros((m.nbody, 4, 4))
     for b in range(m.nbody):
         body_offset[b] = _transform(d0.xmat[b].reshape(3, 3), d0.xpos[b])
-    for b in np.nonzero(moving)[0]:
+    for b in map(int, np.nonzero(moving)[0]):
         p = m.body_parentid[b]
         seg, rel = int(body_segment[p]), body_offset[p]
         rel = rel @ _transform(_quat_mat(m.body_quat[b]), m.body_pos[b])
@@ -179,13 +198,13 @@ def _reduce_tree(m: mujoco.MjModel, joint_ids: list[int]) -> _Tree:
 
     # Merge the bodies of each segment: mass, centre of mass, inertia about it (parallel axis).
     mass, com, inertia = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3, 3))
-    for b in np.nonzero(moving)[0]:
-        s, rel = body_segment[b], body_offset[b]
+    for b in map(int, np.nonzero(moving)[0]):
+        s, rel = int(body_segment[b]), body_offset[b]
         mass[s] += m.body_mass[b]
         com[s] += m.body_mass[b] * (rel[:3, :3] @ m.body_ipos[b] + rel[:3, 3])
     com /= np.maximum(mass, 1e-300)[:, None]
-    for b in np.nonzero(moving)[0]:
-        s, rel = body_segment[b], body_offset[b]
+    for b in map(int, np.nonzero(moving)[0]):
+        s, rel = int(body_segment[b]), body_offset[b]
         rot = rel[:3, :3] @ _quat_mat(m.body_iquat[b])
         d = rel[:3, :3] @ m.body_ipos[b] + rel[:3, 3] - com[s]
         inertia[s] += rot @ np.diag(m.body_inertia[b]) @ rot.T
@@ -210,40 +229,76 @@ def _reduce_tree(m: mujoco.MjModel, joint_ids: list[int]) -> _Tree:
     )
 
 
-# -- run time (JAX): broadcast multiply-sums, fused by XLA, exact float32 on GPUs --------------
+# -- run time (JAX) ---------------------------------------------------------------------------
+# XLA on CPU runs dots well and the gradients of broadcasts, gathers and many small slices
+# (reductions, scatters, pads) badly: products of two traced arrays are dots, products with a
+# model constant are unrolled multiply-adds (no gradient flows into the constant), and the tree
+# structure is a constant 0/1 matrix. Dots use HIGHEST precision: exact float32 on GPUs (no TF32).
+
+_HI = lax.Precision.HIGHEST
 
 
 def _mv(a, x):
     """a: (..., 3, k), x: (..., k) -> a @ x: (..., 3)."""
-    return jnp.sum(a * x[..., None, :], axis=-1)
+    if isinstance(x, np.ndarray):
+        return sum(a[..., i] * x[..., None, i] for i in range(a.shape[-1]))
+    return jnp.einsum("...ik,...k->...i", a, x, precision=_HI)
 
 
 def _mtv(a, x):
     """a: (..., 3, 3), x: (..., 3) -> a.T @ x."""
-    return jnp.sum(a * x[..., :, None], axis=-2)
-
-
-def _cross(a, b):
-    """a, b: (..., 3) -> a x b."""
-    return jnp.cross(a, b)
+    return jnp.einsum("...ki,...k->...i", a, x, precision=_HI)
 
 
 def _compose(a, b):
     """Rigid transforms as [R | o], (3, 4) each -> a @ b (with the implicit last row 0 0 0 1)."""
-    return jnp.sum(a[:, :3, None] * b[None, :, :], axis=1) + a * _LAST_COLUMN
+    if isinstance(b, np.ndarray):
+        rot_b = sum(a[:, i, None] * b[None, i] for i in range(3))
+    else:
+        rot_b = jnp.matmul(a[:, :3], b, precision=_HI)
+    return rot_b + a * _LAST_COLUMN
+
+
+def _cross(a, b):
+    """a, b: (..., 3) -> a x b."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def _tree_sum(a, x):
-    """a: (J, J) constant, x: (J, k) -> a @ x, as a fusible multiply-sum (no TF32)."""
-    return jnp.sum(a[:, :, None] * x[None, :, :], axis=1)
+    """a: (J, J) constant 0/1, x: (J, k) -> a @ x."""
+    return jnp.matmul(a, x, precision=_HI)
 
 
-def make_rnea(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
+def default_form() -> str:
+    """The faster layout for the default JAX backend (see `make_rnea`).
+
+    ``"scalar"`` on accelerators, and on CPU when XLA's CPU fusion emitters are switched off
+    (``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false``, where it is 2-5x the vector form);
+    ``"vector"`` on CPU otherwise.
+    """
+    if jax.default_backend() != "cpu":
+        return "scalar"
+    flags = os.environ.get("XLA_FLAGS", "").replace("_", "-")
+    return "scalar" if "--xla-cpu-use-fusion-emitters=false" in flags else "vector"
+
+
+def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> BackendFunctions:
     """Compile `robot.mj_model` into RNEA and forward-kinematics functions.
 
     robot: needs `mj_model`, `joint_ids (J,)`, `site_id` (see `evojax_motion.robot.Robot`).
     dtype: float dtype of the constants and of the computation.
+    form: how the same algorithm is laid out for XLA (equal results to rounding):
+      ``"vector"``: arrays over the J segments, small dots; best on CPU, where XLA's fusion
+        emitters handle the other form's gradient badly (100x slower to run, minutes to compile);
+      ``"scalar"``: every component a scalar, products with model constants 0 and 1 resolved in
+        Python, so after vmap the whole pass is one elementwise kernel; 3-8x faster on GPUs.
+      None: `default_form()` for the default JAX backend at call time.
     """
+    form = default_form() if form is None else form
+    if form not in FORMS:
+        raise UserError(f"form: expected one of {FORMS}, got {form!r}")
     m = robot.mj_model
     joint_ids = [int(j) for j in np.asarray(robot.joint_ids)]
     for j in joint_ids:
@@ -251,8 +306,46 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
             name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
             raise UserError(f"joints: '{name}': expected a hinge or slide joint")
     tree = _reduce_tree(m, joint_ids)
-    n = len(joint_ids)
-    order = tree.order  # segment s is robot joint order[s]
+    gravity = np.zeros(3) if _disabled(m, "mjDSBL_GRAVITY") else m.opt.gravity.copy()
+    site_id = int(robot.site_id)
+    site_body = int(m.site_bodyid[site_id])
+    site = _Site(
+        segment=int(tree.body_segment[site_body]),  # -1: the site never moves
+        offset=tree.body_offset[site_body]
+        @ _transform(_quat_mat(m.site_quat[site_id]), m.site_pos[site_id]),
+    )
+    build = _vector_functions if form == "vector" else _scalar_functions
+    rigid, site_pose, body_positions = build(tree, gravity, site, np.dtype(dtype))
+
+    # Joint-space terms of qfrc_inverse: armature (in M) and minus the passive forces.
+    dof_adr, qpos_adr = m.jnt_dofadr[joint_ids], m.jnt_qposadr[joint_ids]
+    armature = m.dof_armature[dof_adr]
+    damping = m.dof_damping[dof_adr] * (not _disabled(m, "mjDSBL_DAMPER", "mjDSBL_PASSIVE"))
+    stiffness = m.jnt_stiffness[joint_ids] * (not _disabled(m, "mjDSBL_SPRING", "mjDSBL_PASSIVE"))
+    passive = bool(np.any(armature) or np.any(damping) or np.any(stiffness))
+    armature, damping, stiffness, qpos_spring = (
+        np.asarray(x, dtype) for x in (armature, damping, stiffness, m.qpos_spring[qpos_adr])
+    )
+
+    def inverse(q, qd, qdd):
+        """q, qd, qdd: (J,) -> tau (J,) = M qdd + C qd + g (+ armature, damping, stiffness)."""
+        q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
+        tau = rigid(q, qd, qdd)
+        if passive:
+            tau = tau + armature * qdd + damping * qd + stiffness * (q - qpos_spring)
+        return tau
+
+    return BackendFunctions(inverse=inverse, site_pose=site_pose, body_positions=body_positions)
+
+
+class _Site(NamedTuple):
+    segment: int  # segment the site is attached to, -1 if it never moves
+    offset: np.ndarray  # (4, 4) site frame in the segment frame (world frame if segment == -1)
+
+
+def _vector_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.dtype):
+    """The "vector" form: (rigid-body inverse, site_pose, body_positions)."""
+    n = len(tree.order)
 
     def c(x):  # constants are numpy arrays of `dtype`, folded into the graph
         return np.asarray(x, dtype)
@@ -266,34 +359,18 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
     # Permutations and the parent lookup are constant 0/1 matrices: a gather's gradient is a
     # scatter, slow on CPU; a product's is a product.
     parent_of = c(np.eye(n + 1)[tree.parent][:, :n])  # row j: one-hot parent, zero for a root
-    identity = bool(np.all(order == np.arange(n)))
-    to_segments = c(np.eye(n)[order])  # x_seg = to_segments @ x_robot
-
-    disabled = int(m.opt.disableflags)
-    gravity = np.zeros(3) if disabled & mujoco.mjtDisableBit.mjDSBL_GRAVITY else m.opt.gravity
+    identity = bool(np.all(tree.order == np.arange(n)))
+    to_segments = c(np.eye(n)[tree.order])  # x_seg = to_segments @ x_robot
     # The base accelerates against gravity, so every segment feels it (no per-body term).
     root_acc = c(np.concatenate([np.zeros(3), -gravity]))
-    # Joint-space terms of qfrc_inverse: armature (in M) and minus the passive forces.
-    dof_adr, qpos_adr = m.jnt_dofadr[joint_ids], m.jnt_qposadr[joint_ids]
-    armature = m.dof_armature[dof_adr]
-    damping = m.dof_damping[dof_adr] * (not (disabled & mujoco.mjtDisableBit.mjDSBL_DAMPER))
-    stiffness = m.jnt_stiffness[joint_ids] * (not (disabled & mujoco.mjtDisableBit.mjDSBL_SPRING))
-    passive = bool(np.any(armature) or np.any(damping) or np.any(stiffness))
-    armature, damping, stiffness = c(armature), c(damping), c(stiffness)
-    qpos_spring = c(m.qpos_spring[qpos_adr])
+    site_rel = c(site.offset[:3])
 
-    site_id = int(robot.site_id)
-    site_body = int(m.site_bodyid[site_id])
-    site_seg = int(tree.body_segment[site_body])  # -1: the site never moves
-    site_offset = _transform(_quat_mat(m.site_quat[site_id]), m.site_pos[site_id])
-    site_rel = c((tree.body_offset[site_body] @ site_offset)[:3])  # in its segment (or world)
-
-    def _permute(p, x):
+    def permute(p, x):
         return x if identity else _tree_sum(p, x[:, None])[:, 0]
 
     def kinematics(q):
         """q: (J,) robot order -> segment frames W: (J, 3, 4) = [R | o] in the world frame."""
-        angle = _permute(to_segments, jnp.asarray(q, dtype)) - qpos0
+        angle = permute(to_segments, jnp.asarray(q, dtype)) - qpos0
         s = hinge * jnp.sin(angle) + slide * angle
         cc = hinge * (1.0 - jnp.cos(angle))
         local = c0 + s[:, None, None] * c1 + cc[:, None, None] * c2  # (J, 3, 4)
@@ -303,9 +380,7 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
             frames.append(local[j] if p < 0 else _compose(frames[p], local[j]))
         return jnp.stack(frames)
 
-    def inverse(q, qd, qdd):
-        """q, qd, qdd: (J,) -> tau (J,) = M qdd + C qd + g (+ armature, damping, stiffness)."""
-        q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
+    def rigid(q, qd, qdd):
         frames = kinematics(q)
         rot, org = frames[:, :, :3], frames[:, :, 3]
         # Joint motion subspaces S = (angular, linear at the origin), world frame: (J, 6).
@@ -313,7 +388,7 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
         anchor_w = _mv(rot, anchor) + org
         sw = hinge[:, None] * axis_w
         sv = hinge[:, None] * _cross(anchor_w, axis_w) + slide[:, None] * axis_w
-        rate, accel = (_permute(to_segments, x)[:, None] for x in (qd, qdd))
+        rate, accel = (permute(to_segments, x)[:, None] for x in (qd, qdd))
         xw, xv = sw * rate, sv * rate  # joint twists
         vel = _tree_sum(ancestors, jnp.concatenate([xw, xv], axis=1))  # segment twists (J, 6)
         pvel = _tree_sum(parent_of, vel)
@@ -331,26 +406,224 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
         i_w = _mv(rot, _mv(inertia, _mtv(rot, w)))
         moment = i_dw + _cross(w, i_w) + _cross(com_w, force)
         sub = _tree_sum(ancestors_t, jnp.concatenate([moment, force], axis=1))  # subtree wrench
-        tau = _permute(to_segments.T, jnp.sum(sw * sub[:, :3] + sv * sub[:, 3:], axis=1))
-        if passive:
-            tau = tau + armature * qdd + damping * qd + stiffness * (q - qpos_spring)
-        return tau
+        return permute(to_segments.T, jnp.sum(sw * sub[:, :3] + sv * sub[:, 3:], axis=1))
 
     def site_pose(q):
         """q: (J,) -> site position (3,) and rotation matrix (3, 3), world frame."""
-        pose = site_rel if site_seg < 0 else _compose(kinematics(q)[site_seg], site_rel)
+        pose = site_rel if site.segment < 0 else _compose(kinematics(q)[site.segment], site_rel)
         return jnp.asarray(pose[:, 3]), jnp.asarray(pose[:, :3])
 
-    moving_bodies = np.nonzero(tree.body_segment >= 0)[0]
-    body_seg = tree.body_segment[moving_bodies]
-    body_org = c(tree.body_offset[moving_bodies, :3, 3])
+    moving = np.nonzero(tree.body_segment >= 0)[0]
+    body_seg = tree.body_segment[moving]
+    body_org = c(tree.body_offset[moving, :3, 3])
     fixed_xpos = c(tree.body_offset[:, :3, 3])
 
     def body_positions(q):
         """q: (J,) -> (nbody, 3) world body origins (MuJoCo xpos), world body first."""
         w = kinematics(q)[body_seg]
-        return (
-            jnp.asarray(fixed_xpos).at[moving_bodies].set(_mv(w[:, :, :3], body_org) + w[:, :, 3])
-        )
+        return jnp.asarray(fixed_xpos).at[moving].set(_mv(w[:, :, :3], body_org) + w[:, :, 3])
 
-    return BackendFunctions(inverse=inverse, site_pose=site_pose, body_positions=body_positions)
+    return rigid, site_pose, body_positions
+
+
+def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.dtype):
+    """The "scalar" form: (rigid-body inverse, site_pose, body_positions).
+
+    Same algorithm as `_vector_functions`, recursing over parents instead of using the ancestor
+    matrix, on tuples of scalars: constants are Python floats (weakly typed, so they take the
+    dtype of the traced values), and `_s_add`/`_s_mul` drop terms with a constant 0 or 1.
+    """
+    n = len(tree.order)
+    local = [(_s_const(tree.c0[s]), _s_const(tree.c1[s]), _s_const(tree.c2[s])) for s in range(n)]
+    axis, anchor = [_s_const(x) for x in tree.axis], [_s_const(x) for x in tree.anchor]
+    com, inertia = [_s_const(x) for x in tree.com], [_s_const(x) for x in tree.inertia]
+    root_acc = ((0.0, 0.0, 0.0), _s_const(-gravity))
+    zero = (0.0, 0.0, 0.0)
+
+    def frames_of(q):
+        """q: (J,) -> per segment (R: 3x3, o: 3) world frame, as nested tuples of scalars."""
+        q = [q[k] for k in range(n)]
+        frames = []
+        for s in range(n):
+            angle = _s_sub(q[int(tree.order[s])], float(tree.qpos0[s]))
+            if tree.hinge[s]:
+                sin, omc = jnp.sin(angle), 1.0 - jnp.cos(angle)
+            else:
+                sin, omc = angle, 0.0
+            c0, c1, c2 = local[s]
+            mat = tuple(
+                tuple(
+                    _s_sum(c0[r][k], _s_mul(sin, c1[r][k]), _s_mul(omc, c2[r][k])) for k in range(4)
+                )
+                for r in range(3)
+            )
+            rot, org = tuple(row[:3] for row in mat), tuple(row[3] for row in mat)
+            p = int(tree.parent[s])
+            if p >= 0:
+                rp, op = frames[p]
+                rot, org = _s_mm(rp, rot), _s_vadd(_s_mv(rp, org), op)
+            frames.append((rot, org))
+        return frames
+
+    def rigid(q, qd, qdd):
+        frames = frames_of(q)
+        qd, qdd = list(qd), list(qdd)
+        motion, vel, acc, wrench = [], [], [], []
+        for s in range(n):
+            rot, org = frames[s]
+            k = int(tree.order[s])
+            axis_w = _s_mv(rot, axis[s])
+            if tree.hinge[s]:
+                sw, sv = axis_w, _s_cross(_s_vadd(_s_mv(rot, anchor[s]), org), axis_w)
+            else:
+                sw, sv = zero, axis_w
+            motion.append((sw, sv))
+            p = int(tree.parent[s])
+            (pw, pv), (pdw, pdv) = (vel[p], acc[p]) if p >= 0 else ((zero, zero), root_acc)
+            xw, xv = _s_scale(qd[k], sw), _s_scale(qd[k], sv)
+            w, v = _s_vadd(pw, xw), _s_vadd(pv, xv)
+            # Joint axes move with the parent: d/dt (S qd) = S qdd + v_parent x (S qd).
+            dw = _s_vsum(pdw, _s_scale(qdd[k], sw), _s_cross(pw, xw))
+            dv = _s_vsum(pdv, _s_scale(qdd[k], sv), _s_cross(pw, xv), _s_cross(pv, xw))
+            vel.append((w, v))
+            acc.append((dw, dv))
+            if tree.mass[s] == 0 and not np.any(tree.inertia[s]):
+                wrench.append((zero, zero))
+                continue
+            com_w = _s_vadd(_s_mv(rot, com[s]), org)
+            acom = _s_vsum(dv, _s_cross(dw, com_w), _s_cross(w, _s_vadd(v, _s_cross(w, com_w))))
+            force = _s_scale(float(tree.mass[s]), acom)
+            i_dw = _s_mv(rot, _s_mv(inertia[s], _s_mtv(rot, dw)))
+            i_w = _s_mv(rot, _s_mv(inertia[s], _s_mtv(rot, w)))
+            moment = _s_vsum(i_dw, _s_cross(w, i_w), _s_cross(com_w, force))
+            wrench.append((force, moment))
+        tau = [0.0] * n
+        for s in reversed(range(n)):  # children come after parents: subtree sums in one sweep
+            force, moment = wrench[s]
+            sw, sv = motion[s]
+            tau[int(tree.order[s])] = _s_add(_s_dot(sw, moment), _s_dot(sv, force))
+            p = int(tree.parent[s])
+            if p >= 0:
+                pf, pm = wrench[p]
+                wrench[p] = (_s_vadd(pf, force), _s_vadd(pm, moment))
+        return jnp.stack([jnp.asarray(t, dtype) for t in tau])
+
+    def as_array(x):
+        if isinstance(x, tuple):
+            return jnp.stack([as_array(e) for e in x])
+        return jnp.asarray(x, dtype)
+
+    site_rel = _s_const(site.offset[:3])
+    site_rot, site_org = tuple(row[:3] for row in site_rel), tuple(row[3] for row in site_rel)
+
+    def site_pose(q):
+        """q: (J,) -> site position (3,) and rotation matrix (3, 3), world frame."""
+        if site.segment < 0:
+            return as_array(site_org), as_array(site_rot)
+        rot, org = frames_of(jnp.asarray(q, dtype))[site.segment]
+        return as_array(_s_vadd(_s_mv(rot, site_org), org)), as_array(_s_mm(rot, site_rot))
+
+    def body_positions(q):
+        """q: (J,) -> (nbody, 3) world body origins (MuJoCo xpos), world body first."""
+        frames = frames_of(jnp.asarray(q, dtype))
+        rows = []
+        for seg, off in zip(tree.body_segment, tree.body_offset):
+            pos = _s_const(off[:3, 3])
+            if seg >= 0:
+                rot, org = frames[seg]
+                pos = _s_vadd(_s_mv(rot, pos), org)
+            rows.append(pos)
+        return as_array(tuple(rows))
+
+    return rigid, site_pose, body_positions
+
+
+# -- scalar algebra for the "scalar" form: Python floats (model constants) and traced scalars --
+
+_SNAP = 1e-14  # model constants this close to 0 (quaternion round-off) are exact zeros
+
+
+def _s_const(x: np.ndarray):
+    """A numpy vector or matrix as nested tuples of Python floats, round-off snapped to 0."""
+    x = np.asarray(x, np.float64)
+    if x.ndim == 1:
+        return tuple(0.0 if abs(v) < _SNAP else float(v) for v in x)
+    return tuple(_s_const(row) for row in x)
+
+
+def _s_zero(x) -> bool:
+    return isinstance(x, float) and x == 0.0
+
+
+def _s_add(a, b):
+    if _s_zero(a):
+        return b
+    if _s_zero(b):
+        return a
+    return a + b
+
+
+def _s_sub(a, b):
+    if _s_zero(b):
+        return a
+    if _s_zero(a):
+        return -b
+    return a - b
+
+
+def _s_mul(a, b):
+    for const, x in ((a, b), (b, a)):
+        if isinstance(const, float):
+            if const == 0.0:
+                return 0.0
+            if const == 1.0:
+                return x
+            if const == -1.0:
+                return -x
+    return a * b
+
+
+def _s_sum(*terms):
+    total = 0.0
+    for t in terms:
+        total = _s_add(total, t)
+    return total
+
+
+def _s_dot(u, v):
+    return _s_sum(*(_s_mul(a, b) for a, b in zip(u, v)))
+
+
+def _s_vadd(u, v):
+    return tuple(_s_add(a, b) for a, b in zip(u, v))
+
+
+def _s_vsum(*vs):
+    return tuple(_s_sum(*parts) for parts in zip(*vs))
+
+
+def _s_scale(s, v):
+    return tuple(_s_mul(s, a) for a in v)
+
+
+def _s_cross(u, v):
+    return (
+        _s_sub(_s_mul(u[1], v[2]), _s_mul(u[2], v[1])),
+        _s_sub(_s_mul(u[2], v[0]), _s_mul(u[0], v[2])),
+        _s_sub(_s_mul(u[0], v[1]), _s_mul(u[1], v[0])),
+    )
+
+
+def _s_mv(a, v):
+    """a @ v, a given as rows."""
+    return tuple(_s_dot(row, v) for row in a)
+
+
+def _s_mtv(a, v):
+    """a.T @ v."""
+    return tuple(_s_dot(col, v) for col in zip(*a))
+
+
+def _s_mm(a, b):
+    cols = tuple(zip(*b))
+    return tuple(tuple(_s_dot(row, col) for col in cols) for row in a)

@@ -1,0 +1,285 @@
+"""Inverse dynamics and forward kinematics (both backends) against C MuJoCo.
+
+References: `mujoco.mj_inverse` (qfrc_inverse) and `mujoco.mj_kinematics` (site_xpos, site_xmat,
+xpos) in float64 on the same compiled model, over random states inside the joint limits; central
+finite differences for the gradients. Models: the two shipped robots and `assets/tree_arm.xml`,
+a branching tree with hinge and slide joints, several joints on one body, off-axis inertias,
+rotated frames, a joint reference angle, armature/damping/stiffness and an uncontrolled joint.
+"""
+
+import functools
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from evojax_motion.dynamics import BACKENDS, Dynamics, make_dynamics
+from evojax_motion.dynamics_rnea import FORMS, make_rnea
+from evojax_motion.errors import UserError
+from evojax_motion.robot import load_robot, robot_from_mjcf_text
+
+TOL_TAU_F32 = 1e-4  # max |tau - tau_ref| / max |tau_ref|, float32
+TOL_TAU_F64 = 1e-10  # same, float64
+TOL_SITE_POS_F32 = 1e-5  # [m]
+TOL_SITE_ROT_F32 = 1e-5  # rotation matrix entries
+TOL_KIN_F64 = 1e-12  # site and body positions [m], rotation entries, float64
+TOL_GRAD_FD = 1e-6  # |grad - fd| / |fd| (norm over all entries), float64
+FD_STEP = 1e-6
+N_STATES = 1000
+QD_SCALE, QDD_SCALE = 2.0, 10.0  # random velocities [rad/s], accelerations [rad/s^2]
+
+ASSETS = Path(__file__).resolve().parent / "assets"
+# Not the model's joint order, and r_wrist is left out (held at its qpos0 = ref = 0.2).
+TREE_JOINTS = ("l_elbow", "yaw", "lift", "l_sh1", "l_sh2", "r_slide", "r_sh", "r_elbow")
+ROBOTS = {
+    "mahru_arm": lambda: load_robot("mahru_arm"),
+    "arm6": lambda: load_robot("arm6"),  # its gripper slide "finger" is not controlled
+    "tree_arm": lambda: load_robot(ASSETS / "tree_arm.xml", joints=TREE_JOINTS, site="tip"),
+}
+
+
+class Case:
+    """A robot, random states and the C MuJoCo references for them (all float64 numpy)."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.robot = ROBOTS[name]()
+        rng = np.random.default_rng(sum(map(ord, name)))
+        n, j = N_STATES, self.robot.n_joints
+        self.q = rng.uniform(self.robot.lower, self.robot.upper, (n, j))
+        self.qd = QD_SCALE * rng.standard_normal((n, j))
+        self.qdd = QDD_SCALE * rng.standard_normal((n, j))
+        m = self.robot.mj_model
+        d = mujoco.MjData(m)
+        adr_q, adr_v = self.robot.qpos_adr, self.robot.dof_adr
+        self.tau = np.zeros((n, j))
+        self.site_pos, self.site_rot = np.zeros((n, 3)), np.zeros((n, 3, 3))
+        self.xpos = np.zeros((n, m.nbody, 3))
+        for i in range(n):
+            d.qpos[:], d.qvel[:], d.qacc[:] = m.qpos0, 0.0, 0.0
+            d.qpos[adr_q], d.qvel[adr_v], d.qacc[adr_v] = self.q[i], self.qd[i], self.qdd[i]
+            mujoco.mj_inverse(m, d)  # runs mj_kinematics too
+            self.tau[i] = d.qfrc_inverse[adr_v]
+            self.site_pos[i] = d.site_xpos[self.robot.site_id]
+            self.site_rot[i] = d.site_xmat[self.robot.site_id].reshape(3, 3)
+            self.xpos[i] = d.xpos
+        self._outputs = {}
+
+    def outputs(self, backend: str, dtype) -> dict:
+        """tau, site pose and body positions of all states; one compile per (backend, dtype).
+
+        backend: a `BACKENDS` name, or "rnea-<form>" for a given RNEA layout (`FORMS`).
+        """
+        key = (backend, np.dtype(dtype).name)
+        if key not in self._outputs:
+            with jax.enable_x64(dtype == np.float64):
+                if backend.startswith("rnea-"):
+                    dyn = make_rnea(self.robot, dtype, form=backend.removeprefix("rnea-"))
+                else:
+                    dyn = make_dynamics(self.robot, backend, dtype)
+
+                def one(q, qd, qdd):
+                    pos, rot = dyn.site_pose(q)
+                    return dyn.inverse(q, qd, qdd), pos, rot, dyn.body_positions(q)
+
+                args = (jnp.asarray(x, dtype) for x in (self.q, self.qd, self.qdd))
+                out = jax.jit(jax.vmap(one))(*args)
+                assert all(o.dtype == dtype for o in out)
+                self._outputs[key] = dict(
+                    zip(("tau", "pos", "rot", "xpos"), map(np.asarray, out), strict=True)
+                )
+        return self._outputs[key]
+
+
+@pytest.fixture(scope="module", params=list(ROBOTS))
+def case(request) -> Case:
+    return Case(request.param)
+
+
+def rel_err(x, ref) -> float:
+    return float(np.abs(x - ref).max() / np.abs(ref).max())
+
+
+# The default RNEA form on CPU is "vector"; the "scalar" one (the default on GPUs) is checked
+# too. MJX compiles for tens of seconds on CPU: float32 MJX only on the default robot.
+BACKEND_DTYPES = [
+    ("rnea-vector", np.float32),
+    ("rnea-vector", np.float64),
+    ("rnea-scalar", np.float32),
+    ("rnea-scalar", np.float64),
+    ("mjx", np.float64),
+    pytest.param("mjx", np.float32, marks=pytest.mark.slow, id="mjx-float32"),
+]
+
+
+@pytest.mark.parametrize(("backend", "dtype"), BACKEND_DTYPES)
+def test_inverse_matches_mj_inverse(case, backend, dtype):
+    if backend == "mjx" and dtype == np.float32 and case.name != "mahru_arm":
+        pytest.skip("float32 MJX is checked on mahru_arm (compile time)")
+    out = case.outputs(backend, dtype)
+    tol = TOL_TAU_F32 if dtype == np.float32 else TOL_TAU_F64
+    assert np.abs(case.tau).max() > 1.0  # the states exercise the dynamics
+    assert rel_err(out["tau"], case.tau) <= tol
+
+
+@pytest.mark.parametrize(("backend", "dtype"), BACKEND_DTYPES)
+def test_site_pose_matches_mj_kinematics(case, backend, dtype):
+    if backend == "mjx" and dtype == np.float32 and case.name != "mahru_arm":
+        pytest.skip("float32 MJX is checked on mahru_arm (compile time)")
+    out = case.outputs(backend, dtype)
+    tol_pos, tol_rot = (
+        (TOL_SITE_POS_F32, TOL_SITE_ROT_F32) if dtype == np.float32 else (TOL_KIN_F64,) * 2
+    )
+    assert np.abs(out["pos"] - case.site_pos).max() <= tol_pos
+    assert np.abs(out["rot"] - case.site_rot).max() <= tol_rot
+    if dtype == np.float64:
+        assert np.abs(out["xpos"] - case.xpos).max() <= TOL_KIN_F64
+
+
+def test_rnea_agrees_with_mjx_float64(case):
+    rnea, mjx = case.outputs("rnea-vector", np.float64), case.outputs("mjx", np.float64)
+    assert rel_err(rnea["tau"], mjx["tau"]) <= TOL_TAU_F64
+    assert np.abs(rnea["pos"] - mjx["pos"]).max() <= TOL_KIN_F64
+    assert np.abs(rnea["rot"] - mjx["rot"]).max() <= TOL_KIN_F64
+
+
+def _torque_energy(dyn: Dynamics):
+    """(q, qd, qdd): (B, J) each -> sum of tau^2 over the batch."""
+
+    def energy(q, qd, qdd):
+        return jnp.sum(jax.vmap(dyn.inverse)(q, qd, qdd) ** 2)
+
+    return energy
+
+
+def _central_differences(f, args, step):
+    grads = []
+    for k, x in enumerate(args):
+        g = np.zeros_like(x)
+        for idx in np.ndindex(x.shape):
+            plus, minus = [a.copy() for a in args], [a.copy() for a in args]
+            plus[k][idx] += step
+            minus[k][idx] -= step
+            g[idx] = (float(f(*plus)) - float(f(*minus))) / (2 * step)
+        grads.append(g)
+    return grads
+
+
+def test_rnea_gradients_match_finite_differences(case, x64):
+    dyn = make_rnea(case.robot, np.float64, form="vector")
+    energy = _torque_energy(dyn)
+    args = [case.q[:3], case.qd[:3], case.qdd[:3]]
+    grads = jax.jit(jax.grad(energy, argnums=(0, 1, 2)))(*args)
+    fds = _central_differences(jax.jit(energy), args, FD_STEP)
+    for g, fd in zip(grads, fds, strict=True):
+        assert np.linalg.norm(g - fd) <= TOL_GRAD_FD * np.linalg.norm(fd)
+
+
+SMALL_ARM = """
+<mujoco model="small_arm">
+  <option gravity="0.3 0 -9.81"/>
+  <worldbody>
+    <body name="a" pos="0.1 0 0.5" quat="0.9 0.1 0.2 0">
+      <joint name="h1" type="hinge" axis="0.2 0.1 1" pos="0.01 0.02 0" range="-2 2"/>
+      <inertial pos="0.02 0 -0.1" quat="0.8 0.3 0.1 0.2" mass="2" diaginertia="0.03 0.02 0.01"/>
+      <body name="b" pos="0 0.05 -0.2" quat="0.95 0 0.3 0">
+        <joint name="s1" type="slide" axis="0 0.3 1" range="-0.1 0.1"/>
+        <joint name="h2" type="hinge" axis="1 0 0.1" pos="0 0 0.03" range="-2 2"/>
+        <inertial pos="0 0.01 -0.08" mass="1" fullinertia="0.01 0.009 0.005 0.0005 0 -0.0003"/>
+        <site name="tip" pos="0 0 -0.2"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_rnea_form_gradients_match_finite_differences_small_arm(form, x64):
+    """Both layouts' gradients on a 3-joint arm (the scalar form's gradient compiles slowly on
+    CPU for larger models; the vector form is also checked on every model above)."""
+    robot = robot_from_mjcf_text("small_arm", SMALL_ARM, site="tip")
+    energy = _torque_energy(make_rnea(robot, np.float64, form=form))
+    rng = np.random.default_rng(3)
+    args = [
+        rng.uniform(robot.lower, robot.upper, (2, 3)),
+        QD_SCALE * rng.standard_normal((2, 3)),
+        QDD_SCALE * rng.standard_normal((2, 3)),
+    ]
+    grads = jax.jit(jax.grad(energy, argnums=(0, 1, 2)))(*args)
+    fds = _central_differences(jax.jit(energy), args, FD_STEP)
+    for g, fd in zip(grads, fds, strict=True):
+        assert np.linalg.norm(g - fd) <= TOL_GRAD_FD * np.linalg.norm(fd)
+
+
+@pytest.mark.slow
+def test_mjx_gradients_match_rnea(x64):
+    """Gradients through mjx.inverse (30-40 s to compile on CPU) on one tiny batch."""
+    case_robot = ROBOTS["tree_arm"]()
+    rng = np.random.default_rng(7)
+    j = case_robot.n_joints
+    args = [
+        rng.uniform(case_robot.lower, case_robot.upper, (2, j)),
+        QD_SCALE * rng.standard_normal((2, j)),
+        QDD_SCALE * rng.standard_normal((2, j)),
+    ]
+    ref = jax.grad(_torque_energy(make_dynamics(case_robot, "rnea", np.float64)), (0, 1, 2))
+    got = jax.grad(_torque_energy(make_dynamics(case_robot, "mjx", np.float64)), (0, 1, 2))
+    for g, r in zip(jax.jit(got)(*args), jax.jit(ref)(*args), strict=True):
+        assert np.linalg.norm(g - r) <= TOL_TAU_F64 * np.linalg.norm(r)
+
+
+def test_dynamics_is_a_static_argument_that_compiles_once():
+    robot = ROBOTS["mahru_arm"]()
+    dyn = make_dynamics(robot)
+    traces = []
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def tau(d: Dynamics, q):
+        traces.append(1)
+        return d.inverse(q, jnp.zeros_like(q), jnp.zeros_like(q))
+
+    q = jnp.asarray(robot.rest, jnp.float32)
+    g1, g2 = tau(dyn, q), tau(dyn, q + 0.1)
+    assert len(traces) == 1
+    assert g1.dtype == jnp.float32
+    assert np.abs(np.asarray(g1) - np.asarray(g2)).max() > 0.0
+
+
+def test_user_errors():
+    robot = ROBOTS["mahru_arm"]()
+    with pytest.raises(UserError, match="dynamics: expected one of"):
+        make_dynamics(robot, "pinocchio")
+    assert "pinocchio" not in BACKENDS
+    with jax.enable_x64(False), pytest.raises(UserError, match="x64"):
+        make_dynamics(robot, "rnea", np.float64)
+    with pytest.raises(UserError, match="dtype"):
+        make_dynamics(robot, "rnea", np.int32)
+    with pytest.raises(UserError, match="form"):
+        make_rnea(robot, np.float32, form="matrix")
+
+
+BALL_BELOW_HINGE = """
+<mujoco model="ball_below">
+  <worldbody>
+    <body name="upper">
+      <joint name="hinge" type="hinge" axis="0 1 0" range="-1 1"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.04"/>
+      <body name="lower" pos="0 0 -0.3">
+        <joint name="ball" type="ball"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.04"/>
+        <site name="tip" pos="0 0 -0.3"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_rnea_refuses_ball_joint_in_moving_tree():
+    robot = robot_from_mjcf_text("ball_below", BALL_BELOW_HINGE, joints=["hinge"], site="tip")
+    with pytest.raises(UserError, match="ball"):
+        make_dynamics(robot, "rnea")
