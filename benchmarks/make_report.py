@@ -1,0 +1,152 @@
+"""Render BENCHMARKS.md from the JSON files in benchmarks/results/ (no figure is typed by hand).
+
+Usage: ``python benchmarks/make_report.py`` (rewrites BENCHMARKS.md). Each section names the
+script and command that produced its JSON, the machine and the date; rerun that command to
+reproduce a figure, then this script to refresh the page.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def _load(pattern: str) -> list[tuple[Path, dict]]:
+    return [(p, json.loads(p.read_text())) for p in sorted(RESULTS.glob(pattern))]
+
+
+def _machine(m: dict) -> str:
+    kind = m.get("device_kind") or ", ".join(m.get("devices", [])) or m.get("platform", "?")
+    cpus = m.get("cpu_count")
+    extra = f", {cpus} CPUs" if cpus else ""
+    load = f", load average {m['load_average'][0]:.1f}" if m.get("load_average") else ""
+    return f"{kind}{extra}, jax {m.get('jax', '?')}, {str(m.get('date', '?'))[:10]}{load}"
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}" if abs(x) < 1e4 else f"{x:.2e}"
+
+
+def dynamics_section() -> list[str]:
+    out = ["## Dynamics throughput (`benchmarks/dynamics_throughput.py`)", ""]
+    out += [
+        "Evaluations per second of inverse dynamics (float32, mahru_arm unless named), "
+        "vmapped over N states; FLOPs and bytes per evaluation from XLA's cost analysis.",
+        "",
+    ]
+    for path, d in _load("dynamics_throughput_*.json"):
+        m = d["machine"]
+        out += [
+            f"### {path.name}",
+            "",
+            f"Machine: {_machine(m)}. "
+            f"Command: `{m.get('command', '?')}`. XLA_FLAGS: `{m.get('xla_flags', '')}`",
+            "",
+        ]
+        out += [
+            "| backend | inverse evals/s | value+grad evals/s | FLOP/eval | bytes/eval "
+            "| compile value+grad s |",
+            "|---|---:|---:|---:|---:|---:|",
+        ]
+        if d.get("mujoco_c"):
+            out.append(
+                f"| C mj_inverse, Python loop | {_fmt(d['mujoco_c']['evals_per_s'])} "
+                "| - | - | - | - |"
+            )
+        for name, b in d.get("backends", {}).items():
+            inv, vg = b.get("inverse", {}), b.get("value_and_grad", {})
+            out.append(
+                f"| {name} | {_fmt(inv.get('evals_per_s', float('nan')))} "
+                f"| {_fmt(vg.get('evals_per_s', float('nan')))} "
+                f"| {_fmt(inv.get('flops_per_eval', float('nan')))} "
+                f"| {_fmt(inv.get('bytes_per_eval', float('nan')))} "
+                f"| {vg.get('compile_s', float('nan')):.1f} |"
+            )
+        out.append("")
+    return out
+
+
+def markdown_tables(pattern: str, title: str) -> list[str]:
+    out = [f"## {title}", ""]
+    paths = sorted(RESULTS.glob(pattern))
+    out += [f"### {p.name}\n\n{p.read_text().strip()}\n" for p in paths] or [
+        "Not measured yet.",
+        "",
+    ]
+    return out
+
+
+def import_section() -> list[str]:
+    out = ["## Importing real motion capture (`benchmarks/import_ue_adl.py`)", ""]
+    for _path, d in _load("import_ue_adl*.json"):
+        out += [
+            f"Data: UE ADL, 10 subjects x 2 tasks x 5 trials. Machine: {_machine(d['machine'])}.",
+            "",
+            "| robot | imported | key-point RMS median / p95 / max [mm] | within limits | wall s |",
+            "|---|---:|---:|---|---:|",
+        ]
+        for robot, r in d["robots"].items():
+            s = r["summary"]
+            out.append(
+                f"| {robot} | {s['imported']} / {s['trials']} | "
+                f"{1e3 * s['rms_error_median_m']:.1f} / {1e3 * s['rms_error_p95_m']:.1f} / "
+                f"{1e3 * s['rms_error_max_m']:.1f} | {s['within_joint_limits']} "
+                f"| {s['wall_s']:.0f} |"
+            )
+        out.append("")
+    return out
+
+
+def json_summaries(pattern: str, title: str, keys: list[str]) -> list[str]:
+    out = [f"## {title}", ""]
+    found = _load(pattern)
+    for path, d in found:
+        m = d.get("machine", {})
+        out += [
+            f"### {path.name}",
+            "",
+            f"Machine: {_machine(m)}. Command: `{m.get('command', '?')}`",
+            "",
+        ]
+        flat = {k: d[k] for k in keys if k in d}
+        out += ["```json", json.dumps(flat, indent=1)[:4000], "```", ""]
+    return out or [*out, "Not measured yet.", ""]
+
+
+def main() -> None:
+    lines = [
+        "# Benchmarks",
+        "",
+        "Every figure below is read from a JSON file in `benchmarks/results/`, written by the",
+        "script named in its section, on the machine and date given there. This page is made by",
+        "`python benchmarks/make_report.py`. The 2-core CPU machine is shared and noisy:",
+        "compare figures as ratios within one JSON, not across files.",
+        "",
+    ]
+    lines += markdown_tables(
+        "generations_per_sec_*.md", "Generations per second (`benchmarks/generations_per_sec.py`)"
+    )
+    lines += markdown_tables(
+        "optimality_*.md", "Optimality gap vs float64 SLSQP (`benchmarks/optimality.py`)"
+    )
+    lines += json_summaries(
+        "online_latency_*.json",
+        "Online latency (`benchmarks/online_latency.py`)",
+        ["single", "batched", "database"],
+    )
+    lines += json_summaries(
+        "online_quality_*.json",
+        "Online quality (`benchmarks/online_quality.py`)",
+        ["summary", "targets"],
+    )
+    lines += dynamics_section()
+    lines += import_section()
+    (ROOT / "BENCHMARKS.md").write_text("\n".join(lines).rstrip() + "\n")
+    print(f"written: {ROOT / 'BENCHMARKS.md'}")
+
+
+if __name__ == "__main__":
+    main()
