@@ -42,11 +42,12 @@ from evojax_motion.errors import UserError
 from evojax_motion.online import (
     OnlineResult,
     OnlineSettings,
-    _limits,
-    _settings,
     build_problem,
+    exact_matmuls,
     finish_motion,
+    joint_limits_f32,
     reach_query,
+    resolve_settings,
 )
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import TimeGrid
@@ -93,10 +94,11 @@ class CatchSettings:
 class CatchPlan(NamedTuple):
     """Where and when to catch each of B balls (arrays ``(B,)`` unless noted).
 
-    feasible: a catch exists; index: the chosen sample (-1 if none); catch_time [s after release];
-    catch_point: (B, 3) [m]; ball_velocity: (B, 3) at the catch [m/s]; duration: of the arm's
-    motion [s]; start_time: when it starts [s after release]; time_margin [s]; depth [m] inside
-    the learned region; score: the chosen ``min(margin / scale)``.
+    feasible: a catch exists; sample: index of the chosen ball sample (-1 if none);
+    catch_time [s after release]; catch_point: (B, 3) [m]; ball_velocity: (B, 3) at the catch
+    [m/s]; duration: of the arm's motion [s]; start_time: when it starts [s after release];
+    time_margin [s]; depth [m] inside the learned region; score: the chosen
+    ``min(margin / scale)``.
     When infeasible, why: closest_gap [m]: the smallest distance of the ball's path to the
     reachable set (max of the region gap and the IK miss); closest_time [s]: when it occurs;
     passes_region: the path crosses the reachable set at all (then the ball is only too fast);
@@ -107,7 +109,7 @@ class CatchPlan(NamedTuple):
     """
 
     feasible: jnp.ndarray
-    index: jnp.ndarray
+    sample: jnp.ndarray
     catch_time: jnp.ndarray
     catch_point: jnp.ndarray
     ball_velocity: jnp.ndarray
@@ -209,7 +211,7 @@ def plan_catch(
     time_short = jnp.min(short, axis=1)
     return CatchPlan(
         feasible=feasible,
-        index=jnp.where(feasible, idx, -1).astype(jnp.int32),
+        sample=jnp.where(feasible, idx, -1).astype(jnp.int32),
         catch_time=t_c,
         catch_point=jnp.take_along_axis(pos, idx[:, None, None], axis=1)[:, 0],
         ball_velocity=jnp.take_along_axis(vel, idx[:, None, None], axis=1)[:, 0],
@@ -276,13 +278,14 @@ def make_catcher(
     catch: CatchSettings | None = None,
 ):
     """Jitted ``catcher(db, p0 (B, 3), v0 (B, 3), q_start (B, J)) -> Catch``."""
-    basis_settings, settings = _settings(basis_settings, settings)
+    basis_settings, settings = resolve_settings(basis_settings, settings)
     catch = catch or CatchSettings()
     gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
+    lower, upper = joint_limits_f32(robot)
     fn = functools.partial(
-        catch_query, dyn, grid, *_limits(robot), gravity, basis_settings, settings, catch
+        catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch
     )
-    return jax.jit(fn)
+    return jax.jit(exact_matmuls(fn))
 
 
 def make_planner(
@@ -293,13 +296,12 @@ def make_planner(
     catch: CatchSettings | None = None,
 ):
     """Jitted ``planner(db, p0 (B, 3), v0 (B, 3)) -> CatchPlan`` (no motion)."""
-    basis_settings, settings = _settings(basis_settings, settings)
+    basis_settings, settings = resolve_settings(basis_settings, settings)
     catch = catch or CatchSettings()
     gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
-    fn = functools.partial(
-        plan_catch, dyn, *_limits(robot), gravity, basis_settings, settings, catch
-    )
-    return jax.jit(fn)
+    lower, upper = joint_limits_f32(robot)
+    fn = functools.partial(plan_catch, dyn, lower, upper, gravity, basis_settings, settings, catch)
+    return jax.jit(exact_matmuls(fn))
 
 
 def validate_ball(ball, where: str = "--ball") -> tuple[np.ndarray, np.ndarray]:

@@ -161,8 +161,10 @@ def read_trajectory(path: str | os.PathLike, fmt: str | None = None) -> Trajecto
             return TrajectoryData(f["t"], f["q"], f["qd"], f["qdd"], f["tau"], names, meta)
     if fmt == "json":
         doc = json.loads(path.read_text())
-        arrays = [np.asarray(doc[k], np.float64) for k in ("t", *QUANTITIES)]
-        return TrajectoryData(*arrays, tuple(doc["joint_names"]), doc.get("meta", {}))
+        arrays = {k: np.asarray(doc[k], np.float64) for k in ("t", *QUANTITIES)}
+        return TrajectoryData(
+            **arrays, joint_names=tuple(doc["joint_names"]), meta=doc.get("meta", {})
+        )
     with path.open(newline="") as f:
         rows = list(csv.reader(f))
     header, body = rows[0], np.asarray(rows[1:], np.float64)
@@ -172,5 +174,5 @@ def read_trajectory(path: str | os.PathLike, fmt: str | None = None) -> Trajecto
     names = tuple(h[2:] for h in header[1 : 1 + j])
     if header != column_names(names):
         raise UserError(f"{path}: header does not follow 't, q_*, qd_*, qdd_*, tau_*'")
-    blocks = [body[:, 1 + i * j : 1 + (i + 1) * j] for i in range(len(QUANTITIES))]
-    return TrajectoryData(body[:, 0], *blocks, names, {})
+    blocks = {name: body[:, 1 + i * j : 1 + (i + 1) * j] for i, name in enumerate(QUANTITIES)}
+    return TrajectoryData(t=body[:, 0], **blocks, joint_names=names, meta={})

@@ -15,7 +15,11 @@ target hand position ``p*`` (optionally a duration D and a start posture q0):
    limits"): see below;
 5. ``qd, qdd`` from the time grid and ``tau`` by inverse dynamics (eq. 4), the eq. 5 cost.
 
-Everything is one jitted function, vmapped over any number of targets (`make_online_generator`).
+Everything is one jitted function over any number of targets (`make_online_generator`; pieces:
+`reach_query` = steps 1-2, `build_problem` + `finish_motion` = steps 1-5). Outside the learned
+region (fewer than ``min_neighbours`` primitives within the radius) or out of the IK's reach a
+target is flagged, with its distance; `nearest_reachable` finds a reachable point near it.
+Float32 matrix products are traced at full precision (`exact_matmuls`): GPUs default to TF32.
 
 Joint limits. Per joint the BC system of eq. 2 is ``A x = b`` in the coefficients of eq. 1; with
 ``K_lim`` components (default 4, the optimisation compiler's basis) its solutions are
@@ -54,7 +58,7 @@ from evojax_motion.compile_interp import (
     compile_interpolation,
     solve_boundary,
 )
-from evojax_motion.database import Database
+from evojax_motion.database import EVOLVED, Database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.ik import solve_ik
@@ -77,7 +81,13 @@ class OnlineSettings:
       ``n_components``; 4 = the optimisation compiler's eq. 3 basis).
     - ``min_neighbours``: a target is inside the learned region when at least this many valid
       primitives lie within ``BasisSettings.radius`` of it (<= ``BasisSettings.neighbours``).
-    - ``ik_iters``: IK iterations (started from the nearest neighbour's final posture).
+    - ``prefer_evolved``: take the neighbours among the evolved (robot-optimised) primitives when
+      at least ``min_neighbours`` of them lie within the radius, else among all valid ones. The
+      human originals stay in the database for the evolution's sake (sec. 4.3); online, a basis
+      mixing them in pulls the motion back toward the human's torques (benchmarks/online_quality:
+      median eq. 5 cost 9.4 with all entries, 6.1 with evolved ones, paper setting).
+    - ``ik_iters``: IK iterations (started from the nearest neighbour's final posture; on the
+      paper-setting database 8 already reach the final accuracy, p95 6e-5 m).
     - ``reach_tolerance`` [m]: a target whose IK posture misses it by more is unreachable.
     - ``limit_margin`` [rad]: the limit projection aims this far inside the joint limits.
     - ``projection_iters``: semi-smooth Newton steps of the limit projection.
@@ -87,7 +97,8 @@ class OnlineSettings:
     n_components: int = 3
     limit_components: int = 4
     min_neighbours: int = 4
-    ik_iters: int = 20
+    prefer_evolved: bool = True
+    ik_iters: int = 10
     reach_tolerance: float = 1e-3
     limit_margin: float = 2e-3
     projection_iters: int = 8
@@ -191,14 +202,23 @@ def reach_query(
     """
     q_db = jnp.asarray(db.q)
     points = jnp.asarray(points, q_db.dtype)
-    nb = select_neighbours(
-        jnp.asarray(db.condition, q_db.dtype),
-        jnp.asarray(db.valid),
-        points,
-        basis_settings.neighbours,
-        basis_settings.radius,
-        basis_settings.w_pos,
+    cond, valid = jnp.asarray(db.condition, q_db.dtype), jnp.asarray(db.valid)
+    select = functools.partial(
+        select_neighbours,
+        k=basis_settings.neighbours,
+        radius=basis_settings.radius,
+        w_pos=basis_settings.w_pos,
     )
+    region = select(cond, valid, points)  # the learned region: every valid primitive counts
+    nb = region
+    if settings.prefer_evolved:
+        evolved = select(cond, valid & (jnp.asarray(db.origin) == EVOLVED), points)
+        use = evolved.n_inside >= settings.min_neighbours  # (P,)
+        nb = jax.tree_util.tree_map(
+            lambda e, a: jnp.where(use.reshape(use.shape + (1,) * (e.ndim - 1)), e, a),
+            evolved,
+            region,
+        )
     final = q_db[nb.index, -1]  # (P, k, J) the neighbours' final postures
     ik = solve_ik(
         dyn,
@@ -212,7 +232,7 @@ def reach_query(
     )
     # The learned region: >= min_neighbours primitives within the radius. d_m is 1-Lipschitz in
     # the point, so the gap is a lower bound of the distance to the region (exact near a cluster).
-    kth = nb.distance[:, settings.min_neighbours - 1] / basis_settings.w_pos
+    kth = region.distance[:, settings.min_neighbours - 1] / basis_settings.w_pos
     depth = jnp.where(jnp.isfinite(kth), basis_settings.radius - kth, -jnp.inf)
     gap = jnp.maximum(-depth, 0.0)
     dur = _masked_mean(jnp.asarray(db.duration, q_db.dtype)[nb.index], nb.mask)
@@ -223,7 +243,7 @@ def reach_query(
         q_final=ik.q,
         hand=jax.vmap(lambda q: dyn.site_pose(q)[0])(ik.q),
         natural_duration=jnp.where(jnp.any(nb.mask, axis=1), dur, jnp.nan),
-        n_inside=nb.n_inside,
+        n_inside=region.n_inside,
         reachable=(gap <= 0.0) & (ik.pos_error <= settings.reach_tolerance),
     )
     return reach, nb
@@ -236,10 +256,11 @@ def make_reach_checker(
     settings: OnlineSettings | None = None,
 ) -> Callable:
     """Jitted ``check(db, points (P, 3)) -> Reach``: cheap (no PCA, no dynamics)."""
-    basis_settings, settings = _settings(basis_settings, settings)
-    lower, upper = _limits(robot)
+    basis_settings, settings = resolve_settings(basis_settings, settings)
+    lower, upper = joint_limits_f32(robot)
 
     @jax.jit
+    @exact_matmuls
     def check(db, points):
         return reach_query(dyn, db, points, lower, upper, basis_settings, settings)[0]
 
@@ -254,6 +275,31 @@ def minimum_jerk(grid: TimeGrid, q0, qf) -> jnp.ndarray:
     s = jnp.asarray(grid.s, q0.dtype)
     shape = s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
     return q0[:, None, :] + (qf - q0)[:, None, :] * shape[None, :, None]
+
+
+def spd_solve(h, b):
+    """``x`` with ``h x = b`` for a small symmetric positive definite ``h (n, n)``, ``b (n,)``.
+
+    Cholesky unrolled in Python: only elementwise work, which XLA fuses and vectorises over any
+    batch (batched LU calls for 4 x 4 systems dominate the online query on GPUs).
+    """
+    n = h.shape[0]
+    tiny = jnp.finfo(h.dtype).tiny
+    low = [[None] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1):
+            acc = h[i, j] - sum((low[i][k] * low[j][k] for k in range(j)), jnp.zeros((), h.dtype))
+            low[i][j] = jnp.sqrt(jnp.maximum(acc, tiny)) if i == j else acc / low[j][j]
+    y: list = []
+    for i in range(n):
+        y.append(
+            (b[i] - sum((low[i][k] * y[k] for k in range(i)), jnp.zeros((), h.dtype))) / low[i][i]
+        )
+    x: list = [None] * n
+    for i in reversed(range(n)):
+        rest = sum((low[k][i] * x[k] for k in range(i + 1, n)), jnp.zeros((), h.dtype))
+        x[i] = (y[i] - rest) / low[i][i]
+    return jnp.stack(x)
 
 
 def _joint_projection(a, g, lo, hi, iters: int, penalty: float):
@@ -272,7 +318,7 @@ def _joint_projection(a, g, lo, hi, iters: int, penalty: float):
         bound = jnp.where(up, hi, jnp.where(dn, lo, 0.0))
         ga = jnp.where((up | dn)[:, None], g, 0.0)
         h = eye + rho * ga.T @ ga
-        return jnp.linalg.solve(h, rho * ga.T @ (bound - a))
+        return spd_solve(h, rho * ga.T @ (bound - a))
 
     z = jax.lax.fori_loop(0, iters, step, jnp.zeros(n, a.dtype))
     return a + g @ z
@@ -435,7 +481,7 @@ def online_query(
     return finish_motion(dyn, grid, lower, upper, settings, basis, boundary, reach, targets)
 
 
-def _settings(basis_settings, settings):
+def resolve_settings(basis_settings, settings):
     basis_settings = basis_settings or BasisSettings()
     settings = settings or OnlineSettings()
     if settings.min_neighbours > basis_settings.neighbours:
@@ -446,7 +492,22 @@ def _settings(basis_settings, settings):
     return basis_settings, settings
 
 
-def _limits(robot: Robot):
+def exact_matmuls(fn: Callable) -> Callable:
+    """``fn`` traced with float32 matrix products at full precision.
+
+    On GPUs, float32 products default to TF32 (10-bit mantissa): the trajectory sums and the
+    time-derivative operators would err by ~1e-3 rad, amplified into accelerations and torques.
+    """
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+
+    return wrapped
+
+
+def joint_limits_f32(robot: Robot):
     return np.asarray(robot.lower, np.float32), np.asarray(robot.upper, np.float32)
 
 
@@ -463,21 +524,15 @@ def make_online_generator(
     function serves the learned and the human-only database alike; it recompiles only for a new
     C or database shape.
     """
-    basis_settings, settings = _settings(basis_settings, settings)
-    fn = functools.partial(
-        online_query,
-        dyn,
-        grid,
-        *_limits(robot),
-        basis_settings,
-        settings,
-    )
-    return jax.jit(fn)
+    basis_settings, settings = resolve_settings(basis_settings, settings)
+    lower, upper = joint_limits_f32(robot)
+    fn = functools.partial(online_query, dyn, grid, lower, upper, basis_settings, settings)
+    return jax.jit(exact_matmuls(fn))
 
 
 def online_database(db: Database) -> Database:
     """The database as device arrays (float32), ready to pass to a generator repeatedly."""
-    return Database(*(jnp.asarray(a) for a in db))
+    return jax.tree_util.tree_map(jnp.asarray, db)
 
 
 def check_query(robot: Robot, targets, duration=None, q_start=None):
@@ -531,7 +586,7 @@ def check_points(check: Callable, db, points: np.ndarray, chunk: int) -> Reach:
     pad = (-n) % chunk
     padded = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)]).astype(np.float32)
     parts = [jax.device_get(check(db, padded[i : i + chunk])) for i in range(0, n + pad, chunk)]
-    return Reach(*(np.concatenate(a)[:n] for a in zip(*parts)))
+    return jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n], *parts)
 
 
 def nearest_reachable(
@@ -561,7 +616,7 @@ def nearest_reachable(
         lo, hi = lam[k], lam[min(k + 1, chunk - 1)]
     best = anchor + lo * (target - anchor)
     cand = check_points(check, db, target[None], chunk)
-    hand = check_points(check, db, cand.hand, chunk)
+    hand = check_points(check, db, np.asarray(cand.hand), chunk)
     if hand.reachable[0]:
         h = cand.hand[0]
         if np.linalg.norm(h - target) < np.linalg.norm(best - target):
@@ -630,7 +685,7 @@ def load_online_model(
             basis_settings, settings_source = load_config(cfg_path).basis, str(cfg_path)
         else:
             basis_settings, settings_source = BasisSettings(), "defaults"
-    basis_settings, settings = _settings(basis_settings, settings)
+    basis_settings, settings = resolve_settings(basis_settings, settings)
     return OnlineModel(
         robot=robot,
         dyn=make_dynamics(robot, backend=backend),

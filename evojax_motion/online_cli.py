@@ -16,6 +16,7 @@ The lead's ``cli.build_parser`` calls `add_online_parsers` on its subparsers.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 from pathlib import Path
 
@@ -142,28 +143,47 @@ def _limits_line(motion, i: int) -> str:
     return f"inside ({how}; plain interpolation exceeded them by {excess:.4f} rad)"
 
 
-def _generate_one(model, target, duration, q_start):
-    from evojax_motion.online import check_query, make_online_generator, to_numpy
+@functools.lru_cache(maxsize=4)
+def _session(path: str, mtime_ns: int, backend: str):
+    """The loaded model and its jitted functions, kept per database file and version: repeated
+    commands in one process (tests, notebooks) do not recompile."""
+    from evojax_motion.online import load_online_model, make_online_generator, make_reach_checker
 
+    model = load_online_model(path, backend=backend)
+    args = (model.robot, model.dyn, model.basis_settings, model.settings)
+    gen = make_online_generator(model.robot, model.dyn, model.grid, *args[2:])
+    return model, gen, make_reach_checker(*args)
+
+
+def _open(args):
+    from evojax_motion.online import resolve_database_path
+
+    path = resolve_database_path(args.db)
+    if not path.is_file():
+        raise UserError(f"{path}: database file not found")
+    return _session(str(path.resolve()), path.stat().st_mtime_ns, args.dynamics)
+
+
+def _generate_one(session, target, duration, q_start):
+    from evojax_motion.online import check_query, to_numpy
+
+    model, gen, _ = session
     targets, dur, q0 = check_query(model.robot, target, duration, q_start)
-    gen = make_online_generator(
-        model.robot, model.dyn, model.grid, model.basis_settings, model.settings
-    )
     return to_numpy(gen(model.db_device, targets, dur, q0))
 
 
 def cmd_generate(args) -> int:
     """``evojax-motion generate``: one motion to ``--target``; exit 0, or `UserError`."""
-    from evojax_motion.online import load_online_model, make_reach_checker, nearest_reachable
+    from evojax_motion.online import nearest_reachable
 
     fmt = _check_out(args)
     enable_compile_cache()
-    model = load_online_model(args.db, backend=args.dynamics)
+    session = _open(args)
+    model, _, check = session
     target = np.asarray(args.target, np.float32)
-    motion = _generate_one(model, target, args.duration, args.start)
+    motion = _generate_one(session, target, args.duration, args.start)
     note = None
     if not bool(motion.reachable[0]):
-        check = make_reach_checker(model.robot, model.dyn, model.basis_settings, model.settings)
         point, dist = nearest_reachable(check, model.db_device, target)
         where = (
             f"target {_vec(target)} m is outside the reachable region: the nearest reachable "
@@ -172,7 +192,7 @@ def cmd_generate(args) -> int:
         if not args.nearest:
             raise UserError(f"{where}; pass --nearest to use it")
         note = f"{where}; using it (--nearest)"
-        motion = _generate_one(model, point, args.duration, args.start)
+        motion = _generate_one(session, point, args.duration, args.start)
         if not bool(motion.reachable[0]):
             raise UserError(f"{where}, but it could not be reached either; nothing written")
     meta = _motion_meta(model, motion, 0)
@@ -218,17 +238,15 @@ def cmd_catch(args) -> int:
     """``evojax-motion catch``: plan the catch of ``--ball`` and write the motion."""
     import jax
 
-    from evojax_motion.catching import explain_plan, make_catcher, validate_ball
-    from evojax_motion.online import load_online_model, make_reach_checker
+    from evojax_motion.catching import explain_plan, validate_ball
 
     fmt = _check_out(args)
     p0, v0 = validate_ball(args.ball)
     catch = _catch_settings(args)
     enable_compile_cache()
-    model = load_online_model(args.db, backend=args.dynamics)
-    catcher = make_catcher(
-        model.robot, model.dyn, model.grid, model.basis_settings, model.settings, catch
-    )
+    session = _open(args)
+    model = session[0]
+    catcher = _catcher(session, catch)
     q0 = np.asarray(model.robot.rest, np.float32)[None]
     plan, motion = jax.device_get(catcher(model.db_device, p0, v0, q0))
     line = explain_plan(plan, 0)
@@ -236,8 +254,7 @@ def cmd_catch(args) -> int:
     if not bool(plan.feasible[0]):
         if not args.nearest:
             raise UserError(f"{line}; pass --nearest to move toward the ball anyway")
-        check = make_reach_checker(model.robot, model.dyn, model.basis_settings, model.settings)
-        motion, note = _nearest_attempt(model, check, catch, plan)
+        motion, note = _nearest_attempt(session, catch, plan)
     meta = _motion_meta(model, motion, 0)
     meta.update(
         ball=_vec(np.concatenate([p0[0], v0[0]])),
@@ -266,7 +283,23 @@ def cmd_catch(args) -> int:
     return 0
 
 
-def _nearest_attempt(model, check, catch, plan):
+_CATCHERS: dict = {}
+
+
+def _catcher(session, catch):
+    """The jitted catcher of a session and catch settings (kept, like `_session`)."""
+    from evojax_motion.catching import make_catcher
+
+    key = (id(session[0]), catch)
+    if key not in _CATCHERS:
+        model = session[0]
+        _CATCHERS[key] = make_catcher(
+            model.robot, model.dyn, model.grid, model.basis_settings, model.settings, catch
+        )
+    return _CATCHERS[key]
+
+
+def _nearest_attempt(session, catch, plan):
     """``--nearest`` for an uncatchable ball: move toward it as well as the arm can.
 
     Too early: to the reachable sample with the best time margin, as fast as allowed (arriving
@@ -275,6 +308,7 @@ def _nearest_attempt(model, check, catch, plan):
     """
     from evojax_motion.online import nearest_reachable
 
+    model, _, check = session
     if bool(plan.passes_region[0]):
         k = int(plan.late_index[0])
         point = np.asarray(plan.ball[0, k], np.float32)
@@ -288,7 +322,7 @@ def _nearest_attempt(model, check, catch, plan):
     t_ball = float(plan.times[0, k])
     duration = float(np.clip(t_ball - catch.reaction_time, d_nat / catch.speedup, d_nat))
     start = max(catch.reaction_time, t_ball - duration)
-    motion = _generate_one(model, point, duration, None)
+    motion = _generate_one(session, point, duration, None)
     if not bool(motion.reachable[0]):
         raise UserError(f"the nearest point {_vec(point)} m could not be reached; nothing written")
     return motion._replace(t=motion.t + start), note

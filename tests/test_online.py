@@ -1,0 +1,406 @@
+"""Online generation (online.py, online_cli.py): the query against the compilers it chains, the
+joint-limit projection (property test), reachability, the CLI's files and errors."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from online_support import (
+    SETTINGS,
+    mj_inverse_torques,
+    online_env,
+    query,
+    reach_checker,
+)
+
+from evojax_motion.basis import pca_basis, select_neighbours
+from evojax_motion.compile_interp import Boundary, basis_functions, compile_interpolation
+from evojax_motion.errors import UserError
+from evojax_motion.online import (
+    OnlineSettings,
+    enforce_limits,
+    minimum_jerk,
+    nearest_reachable,
+    spd_solve,
+)
+
+TOL_HAND = 1e-3  # m: final hand error of a reachable target (the benchmark asks <= 5 mm p95)
+TOL_Q = 1e-5  # rad: float32 agreement of two evaluations of the same trajectory
+TOL_BC_Q = 1e-5  # rad: position boundary conditions after the limit projection
+TOL_BC_QD = 0.02  # rad/s: end velocities may grow by the dropped (degenerate) velocity rows
+TOL_TAU = 2e-3  # N m: float32 RNEA vs float64 mj_inverse on |tau| up to ~30 N m
+TOL_SPD = 1e-5  # relative: unrolled Cholesky vs numpy
+TOL_SPAN = 1e-4  # rad: least-squares residual of a trajectory in its PCA span (float32 data)
+TOL_PROJ = 2e-3  # rad: our penalty projection's step vs SciPy's exact QP step (penalty slack)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return online_env()
+
+
+@pytest.fixture(scope="module")
+def near(env):
+    """Eight targets 1-2 cm from database conditions, and their query result."""
+    rng = np.random.default_rng(1)
+    targets = env.db.condition[:8] + rng.normal(0, 0.01, (8, 3)).astype(np.float32)
+    return targets, query(env, targets)
+
+
+def test_settings_validation():
+    with pytest.raises(ValueError, match=r"^limit_components: expected"):
+        OnlineSettings(n_components=3, limit_components=2)
+    with pytest.raises(ValueError, match=r"^reach_tolerance: expected"):
+        OnlineSettings(reach_tolerance=0.0)
+
+
+def test_query_reaches_target_within_limits_and_bcs(env, near):
+    targets, r = near
+    assert r.ok.all() and r.reachable.all()
+    assert r.hand_error.max() <= TOL_HAND
+    lo, hi = env.robot.lower, env.robot.upper
+    assert ((r.q >= lo) & (r.q <= hi)).all()
+    np.testing.assert_allclose(
+        r.q[:, 0], np.broadcast_to(env.robot.rest, r.q[:, 0].shape), atol=TOL_Q
+    )
+    np.testing.assert_allclose(r.q[:, -1], r.q_final, atol=TOL_Q)
+    # default duration: the neighbours' mean; t runs over [0, D] on the grid
+    nb = select_neighbours(
+        jnp.asarray(env.db.condition), jnp.asarray(env.db.valid), jnp.asarray(targets), 8, 0.15
+    )
+    dur = np.asarray(env.db.duration)[np.asarray(nb.index)].mean(axis=1)
+    np.testing.assert_allclose(r.duration, dur, rtol=1e-6)
+    np.testing.assert_allclose(r.t, env.grid.s[None] * r.duration[:, None], rtol=1e-6)
+
+
+def test_query_is_eq1_interpolation_when_inside(env, near):
+    """Inside the limits the online motion is exactly the movement compiler via interpolation
+    (eq. 1-2, three components) on the neighbours' basis with the online BCs."""
+    targets, r = near
+    assert (r.limit_excess == 0).all()
+    q = _eq1(env, targets, r.q_final, r.duration)[1]
+    np.testing.assert_allclose(r.q, np.asarray(q), atol=TOL_Q)
+
+
+def _eq1(env, targets, q_final, duration):
+    """Reference chain, jitted once (op-by-op dispatch compiles every op): neighbours, 4-component
+    PCA, rest-to-rest BCs, eq. 1 with 3 components. Returns ``(basis, q, boundary)``."""
+
+    @jax.jit
+    def chain(targets, q_final, duration):
+        nb = select_neighbours(env.db_device.condition, env.db_device.valid, targets, 8, 0.15)
+        basis = pca_basis(env.db_device.q, env.db_device.duration, nb, 4)
+        zeros = jnp.zeros_like(q_final)
+        rest = jnp.broadcast_to(jnp.asarray(env.robot.rest, jnp.float32), zeros.shape)
+        bc = Boundary(rest, q_final, zeros, zeros, duration)
+        return basis, compile_interpolation(basis, bc, env.grid, n_components=3).q, bc
+
+    return chain(jnp.asarray(targets), jnp.asarray(q_final), jnp.asarray(duration))
+
+
+def test_torques_match_mj_inverse(env, near):
+    _, r = near
+    for i in (0, 5):
+        ref = mj_inverse_torques(env.robot, r.q[i], r.qd[i], r.qdd[i])
+        np.testing.assert_allclose(r.tau[i], ref, atol=TOL_TAU)
+
+
+def test_duration_and_start_posture_are_honoured(env, near):
+    targets, _ = near
+    start = np.clip(env.robot.rest + 0.1, env.robot.lower, env.robot.upper)
+    r = query(env, targets, duration=0.9, q_start=start)
+    assert r.ok.all()
+    np.testing.assert_allclose(r.duration, 0.9, rtol=1e-6)
+    np.testing.assert_allclose(r.q[:, 0], np.broadcast_to(start, r.q[:, 0].shape), atol=TOL_Q)
+    assert env.generate._cache_size() == 1  # same shapes: no recompilation
+
+
+def test_neighbours_prefer_evolved_primitives(env, near):
+    """With enough evolved (robot-optimised) primitives inside the radius, the basis is built
+    from them alone: the motion equals the one from a database holding only those; the learned
+    region (n_inside, the gap) still counts every valid primitive."""
+    from evojax_motion.database import EVOLVED
+    from evojax_motion.online import to_numpy
+
+    targets, r_all = near
+    origin = np.where(np.arange(len(env.db.valid)) % 2 == 0, EVOLVED, env.db.origin)
+    mixed = env.db._replace(origin=origin.astype(np.int32))
+    only = mixed._replace(valid=env.db.valid & (origin == EVOLVED))
+    rest = np.tile(np.asarray(env.robot.rest, np.float32), (len(targets), 1))
+    dur = np.full(len(targets), np.nan, np.float32)
+    r_mixed = to_numpy(env.generate(jax.tree_util.tree_map(jnp.asarray, mixed), targets, dur, rest))
+    r_only = to_numpy(env.generate(jax.tree_util.tree_map(jnp.asarray, only), targets, dur, rest))
+    enough = r_only.n_inside >= SETTINGS.min_neighbours
+    assert enough.sum() >= 4
+    np.testing.assert_allclose(r_mixed.q[enough], r_only.q[enough], atol=TOL_Q)
+    np.testing.assert_array_equal(r_mixed.n_inside, r_all.n_inside)
+    assert not np.allclose(r_mixed.q[enough], r_all.q[enough], atol=1e-3)
+
+
+def test_user_errors(env):
+    with pytest.raises(UserError, match="duration: expected a number > 0"):
+        query(env, env.db.condition[:1], duration=-1.0)
+    with pytest.raises(UserError, match="start posture: joint 'shoulder_pitch'"):
+        bad = np.array(env.robot.rest)
+        bad[1] = env.robot.upper[1] + 0.5
+        query(env, env.db.condition[:1], q_start=bad)
+    with pytest.raises(UserError, match="target: expected finite"):
+        query(env, [[np.nan, 0.0, 1.0]])
+
+
+def test_unreachable_target_is_flagged_and_nearest_point_is_reachable(env):
+    far = np.array([[1.5, -0.3, 1.4]], np.float32)
+    r = query(env, far)
+    assert not r.reachable[0] and not r.ok[0]
+    assert r.region_gap[0] > 0.5  # metres outside the learned region
+    point, dist = nearest_reachable(reach_checker(), env.db_device, far[0])
+    r2 = query(env, point[None])
+    assert r2.ok[0] and r2.hand_error[0] <= TOL_HAND
+    cond = env.db.condition[env.db.valid]
+    assert dist <= np.linalg.norm(cond - far, axis=1).min() + 1e-6  # no worse than a condition
+    assert dist >= float(r.region_gap[0]) - 1e-6  # the gap is a lower bound
+
+
+def test_spd_solve_matches_numpy():
+    rng = np.random.default_rng(0)
+    for n in (1, 4):
+        a = rng.normal(size=(n, n))
+        h = np.eye(n) + 50.0 * a @ a.T
+        b = rng.normal(size=n)
+        x = np.asarray(jax.jit(spd_solve)(jnp.asarray(h, jnp.float32), jnp.asarray(b, jnp.float32)))
+        ref = np.linalg.solve(h, b)
+        assert np.abs(x - ref).max() <= TOL_SPD * np.abs(ref).max() * 10 * n
+
+
+# ------------------------------------------------------------------------ joint-limit projection
+
+
+@functools.cache
+def _limit_problem():
+    """Bases and BCs of 8 targets, eq. 1 motions, and a jitted `enforce_limits(q, lower, upper)`."""
+    env = online_env()
+    rng = np.random.default_rng(2)
+    targets = env.db.condition[8:16] + rng.normal(0, 0.01, (8, 3)).astype(np.float32)
+    r = query(env, targets)
+    basis, q, bc = _eq1(env, targets, r.q_final, r.duration)
+
+    @jax.jit
+    def enforce(q, lower, upper):
+        return enforce_limits(basis, bc, env.grid, q, lower, upper, SETTINGS)
+
+    return env, basis, bc, np.asarray(q), enforce
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    below=st.lists(st.floats(0.0, 0.05), min_size=7, max_size=7),
+    above=st.lists(st.floats(0.0, 0.05), min_size=7, max_size=7),
+)
+def test_limit_projection_keeps_limits_and_bcs(below, above):
+    """Limits drawn just outside [min(q0, qf), max(q0, qf)] per joint, so the eq. 1 motions
+    overshoot them: the result is inside (exactly), meets the same BCs, and joints that were
+    inside are untouched."""
+    env, _, bc, q, enforce = _limit_problem()
+    q0, qf = np.asarray(bc.q0), np.asarray(bc.qf)
+    lower = (np.minimum(q0, qf).min(axis=0) - np.asarray(below)).astype(np.float32)
+    upper = (np.maximum(q0, qf).max(axis=0) + np.asarray(above)).astype(np.float32)
+    out, excess, _ = jax.device_get(enforce(q, jnp.asarray(lower), jnp.asarray(upper)))
+    assert ((out >= lower) & (out <= upper)).all()
+    was_out = (q > upper) | (q < lower)
+    worst = np.maximum(q - upper, lower - q).max(axis=(1, 2))
+    np.testing.assert_allclose(excess, worst.clip(0), atol=1e-7)
+    np.testing.assert_allclose(out[:, 0], q0, atol=TOL_BC_Q)
+    np.testing.assert_allclose(out[:, -1], qf, atol=TOL_BC_Q)
+    d1 = np.asarray(env.grid.d1)[[0, -1]]
+    dur = np.asarray(bc.duration)[:, None, None]
+    vel = np.einsum("et,ctj->cej", d1, out) / dur  # (C, 2, J) end velocities [rad/s]
+    vel_ref = np.einsum("et,ctj->cej", d1, q) / dur
+    assert (np.abs(vel) <= np.abs(vel_ref) + TOL_BC_QD).all()
+    untouched = ~was_out.any(axis=1)  # (C, J)
+    np.testing.assert_array_equal(
+        out.transpose(0, 2, 1)[untouched], q.transpose(0, 2, 1)[untouched]
+    )
+
+
+def test_limit_projection_is_the_minimal_null_space_step():
+    """Push every motion's shoulder pitch (joint 1) 0.2 rad over a limit along a BC null-space
+    direction: the projection alone brings it back (no blend), the result stays in the span of
+    the mean, the 4 components and the constant, and its step is SciPy's minimum-norm one."""
+    from scipy.optimize import minimize
+
+    from evojax_motion.compile_interp import solve_boundary
+
+    env, basis, bc, q, enforce = _limit_problem()
+    j = 1
+    funcs, null = jax.jit(
+        lambda b, bc: (basis_functions(b, 4), solve_boundary(b, bc, env.grid, 4).null)
+    )(basis, bc)
+    funcs, null = np.asarray(funcs, np.float64), np.asarray(null, np.float64)  # (C, J, 5, T|4)
+    g = np.einsum("cnt,cnk->ctk", funcs[:, j], null[:, j])  # (C, T, 4) null directions
+    upper = np.asarray(env.robot.upper, np.float32).copy()
+    upper[j] = q[:, :, j].max() + 0.05
+    pushed = q.copy()
+    for c in range(q.shape[0]):
+        k = np.argmax(np.abs(g[c]).max(axis=0))
+        d = g[c, :, k] * np.sign(g[c, np.argmax(np.abs(g[c, :, k])), k])
+        alpha = (upper[j] + 0.2 - q[c, :, j].max()) / d.max()
+        while (q[c, :, j] + alpha * d).max() < upper[j] + 0.2:
+            alpha *= 1.2
+        pushed[c, :, j] += alpha * d
+    assert (pushed[:, :, j].max(axis=1) > upper[j] + 0.15).all()
+    lower = np.asarray(env.robot.lower, np.float32)
+    out, excess, fallback = jax.device_get(enforce(pushed, jnp.asarray(lower), jnp.asarray(upper)))
+    assert (out <= upper).all() and (excess > 0.15).all() and not fallback.any()
+    safe = np.asarray(minimum_jerk(env.grid, bc.q0, bc.qf))
+    for c in range(q.shape[0]):
+        span = np.concatenate([np.asarray(basis.mean)[c, None, :, j], funcs[c, j]]).T  # (T, 6)
+        coef, *_ = np.linalg.lstsq(span, out[c, :, j], rcond=None)
+        assert np.abs(span @ coef - out[c, :, j]).max() < TOL_SPAN
+        a = pushed[c, :, j].astype(np.float64)
+        hi = np.maximum(upper[j] - SETTINGS.limit_margin, safe[c, :, j])
+        res = minimize(
+            lambda z: 0.5 * z @ z,
+            np.zeros(g.shape[2]),
+            jac=lambda z: z,
+            constraints=[
+                {
+                    "type": "ineq",
+                    "fun": lambda z, c=c, a=a, hi=hi: hi - a - g[c] @ z,
+                    "jac": lambda z, c=c: -g[c],
+                }
+            ],
+            method="SLSQP",
+            options={"ftol": 1e-12, "maxiter": 300},
+        )
+        assert res.success
+        ours = np.linalg.lstsq(g[c], out[c, :, j] - a, rcond=None)[0]
+        scipy_step = g[c] @ res.x
+        np.testing.assert_allclose(g[c] @ ours, scipy_step, atol=TOL_PROJ)
+
+
+# -------------------------------------------------------------------------------------- CLI
+
+
+def _cli(argv):
+    """Run ``evojax-motion <argv>`` in-process with the online subcommands; exit status."""
+    from evojax_motion.cli import _Parser
+    from evojax_motion.online_cli import add_online_parsers
+
+    parser = _Parser(prog="evojax-motion")
+    add_online_parsers(parser.add_subparsers(dest="command", required=True, parser_class=_Parser))
+    try:
+        args = parser.parse_args(argv)
+        return int(args.func(args) or 0)
+    except UserError as e:
+        print(f"error: {e}")
+        return 2
+
+
+@pytest.fixture(scope="module")
+def db_file(tmp_path_factory, env):
+    from evojax_motion.database import save_database
+
+    path = tmp_path_factory.mktemp("online") / "db.npz"
+    save_database(path, env.db, env.meta)
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _no_compile_cache(monkeypatch):
+    monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
+
+
+def test_cli_generate_csv_torques_equal_mj_inverse(env, db_file, tmp_path, capsys, monkeypatch):
+    """``evojax-motion generate`` on the cached compilations (the loader has its own test)."""
+    from online_support import cli_session
+
+    from evojax_motion import online_cli
+    from evojax_motion.export import read_trajectory
+
+    session = cli_session(env, db_file)
+    monkeypatch.setattr(online_cli, "_session", lambda *args: session)
+    target = [f"{v:.4f}" for v in env.db.condition[3] + 0.01]
+    out = tmp_path / "traj.csv"
+    assert _cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 0
+    assert "written to" in capsys.readouterr().out
+    data = read_trajectory(out)
+    assert data.joint_names == env.robot.joint_names
+    ref = mj_inverse_torques(env.robot, data.q, data.qd, data.qdd)
+    np.testing.assert_allclose(data.tau, ref, atol=TOL_TAU)
+    assert ((data.q >= env.robot.lower) & (data.q <= env.robot.upper)).all()
+    # refuses to overwrite; an unreachable target: one line, distance, exit 2, nothing written
+    assert _cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 2
+    assert "already exists" in capsys.readouterr().out
+    far = tmp_path / "far.json"
+    argv = ["generate", "--db", str(db_file), "--target", "1.5", "-0.3", "1.4", "--out", str(far)]
+    assert _cli(argv) == 2
+    msg = capsys.readouterr().out
+    assert "outside the reachable region" in msg and "m away" in msg and "--nearest" in msg
+    assert not far.exists()
+    assert _cli([*argv, "--nearest"]) == 0
+    assert "using it (--nearest)" in capsys.readouterr().out
+    assert "NaN" not in far.read_text() and "nan" not in far.read_text()
+
+
+def test_load_online_model_rebuilds_robot_and_settings(env, db_file, tmp_path):
+    """The CLI's loader: robot from the MJCF stored in the file, arrays as saved, basis settings
+    from a run directory's config.yaml (no compilation involved)."""
+    import shutil
+
+    from evojax_motion.online import load_online_model
+
+    model = load_online_model(db_file)
+    assert model.robot.joint_names == env.robot.joint_names
+    np.testing.assert_array_equal(model.robot.upper, env.robot.upper)
+    np.testing.assert_array_equal(model.db.q, env.db.q)
+    assert model.settings_source == "defaults" and model.grid.s.shape == (env.db.q.shape[1],)
+    run = tmp_path / "run"
+    run.mkdir()
+    shutil.copy(db_file, run / "db_final.npz")
+    (run / "config.yaml").write_text("basis:\n  radius: 0.2\n  neighbours: 6\n")
+    model = load_online_model(run)
+    assert model.basis_settings.radius == 0.2 and model.basis_settings.neighbours == 6
+    with pytest.raises(UserError, match=r"without db_final\.npz"):
+        load_online_model(tmp_path)
+
+
+def test_cli_parser_shape():
+    """The subcommands and their required options (cheap: no query runs)."""
+    from evojax_motion.online_cli import add_online_parsers
+
+    parser = argparse.ArgumentParser()
+    add_online_parsers(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(
+        ["generate", "--db", "x.npz", "--target", "1", "2", "3", "--out", "o.csv"]
+    )
+    assert args.target == [1.0, 2.0, 3.0] and args.duration is None and args.format is None
+    args = parser.parse_args(
+        ["catch", "--db", "x", "--ball", "1", "2", "3", "4", "5", "6", "--out", "o.npz"]
+    )
+    assert args.ball == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0] and args.drag == 0.0
+
+
+@pytest.mark.slow
+def test_cli_generate_end_to_end(env, db_file, tmp_path, capsys):
+    """The real command: loads the file, rebuilds the robot, compiles its own query."""
+    from evojax_motion import online_cli
+    from evojax_motion.export import read_trajectory
+
+    online_cli._session.cache_clear()
+    target = [f"{v:.4f}" for v in env.db.condition[7] + 0.005]
+    out = tmp_path / "traj.npz"
+    argv = ["generate", "--db", str(db_file), "--target", *target, "--duration", "0.8"]
+    assert _cli([*argv, "--out", str(out)]) == 0
+    assert "0.800 s" in capsys.readouterr().out
+    data = read_trajectory(out)
+    np.testing.assert_allclose(data.t[-1], 0.8, rtol=1e-6)
+    assert data.meta["hand_error"] <= TOL_HAND
+    ref = mj_inverse_torques(env.robot, data.q, data.qd, data.qdd)
+    np.testing.assert_allclose(data.tau, ref, atol=TOL_TAU)
