@@ -38,7 +38,7 @@ import numpy as np
 from evojax_motion.basis import BasisSettings
 from evojax_motion.database import Database
 from evojax_motion.dynamics import Dynamics
-from evojax_motion.errors import UserError
+from evojax_motion.errors import UserError, check_setting
 from evojax_motion.online import (
     OnlineResult,
     OnlineSettings,
@@ -51,11 +51,6 @@ from evojax_motion.online import (
 )
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import TimeGrid
-
-
-def _check(ok: bool, name: str, expected: str, value) -> None:
-    if not ok:
-        raise ValueError(f"{name}: expected {expected}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -81,14 +76,16 @@ class CatchSettings:
     space_scale: float = 0.03
 
     def __post_init__(self):
-        _check(0 < self.horizon <= 10, "horizon", "a number in (0, 10] [s]", self.horizon)
-        _check(self.samples >= 2, "samples", "an integer >= 2", self.samples)
-        _check(0 <= self.drag < 1, "drag", "a number in [0, 1) [1/m]", self.drag)
-        _check(self.substeps >= 1, "substeps", "an integer >= 1", self.substeps)
-        _check(self.reaction_time >= 0, "reaction_time", "a number >= 0 [s]", self.reaction_time)
-        _check(self.speedup >= 1, "speedup", "a number >= 1", self.speedup)
-        _check(self.time_scale > 0, "time_scale", "a number > 0 [s]", self.time_scale)
-        _check(self.space_scale > 0, "space_scale", "a number > 0 [m]", self.space_scale)
+        check_setting(0 < self.horizon <= 10, "horizon", "a number in (0, 10] [s]", self.horizon)
+        check_setting(self.samples >= 2, "samples", "an integer >= 2", self.samples)
+        check_setting(0 <= self.drag < 1, "drag", "a number in [0, 1) [1/m]", self.drag)
+        check_setting(self.substeps >= 1, "substeps", "an integer >= 1", self.substeps)
+        check_setting(
+            self.reaction_time >= 0, "reaction_time", "a number >= 0 [s]", self.reaction_time
+        )
+        check_setting(self.speedup >= 1, "speedup", "a number >= 1", self.speedup)
+        check_setting(self.time_scale > 0, "time_scale", "a number > 0 [s]", self.time_scale)
+        check_setting(self.space_scale > 0, "space_scale", "a number > 0 [m]", self.space_scale)
 
 
 class CatchPlan(NamedTuple):

@@ -24,13 +24,9 @@ from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
 from evojax_motion.compile_optim import OptimSettings, make_optimisation_compiler
 from evojax_motion.database import EVOLVED, Database
 from evojax_motion.dynamics import Dynamics
+from evojax_motion.errors import check_setting
 from evojax_motion.objective import torque_sum, trajectory_torques
 from evojax_motion.timegrid import TimeGrid, derivatives
-
-
-def _check(ok: bool, name: str, expected: str, value) -> None:
-    if not ok:
-        raise ValueError(f"{name}: expected {expected}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -64,27 +60,31 @@ class EvolutionSettings:
     bc_velocity_tolerance: float = 0.1
 
     def __post_init__(self):
-        _check(self.conditions >= 1, "conditions", "an integer >= 1", self.conditions)
-        _check(self.generations >= 1, "generations", "an integer >= 1", self.generations)
-        _check(
+        check_setting(self.conditions >= 1, "conditions", "an integer >= 1", self.conditions)
+        check_setting(self.generations >= 1, "generations", "an integer >= 1", self.generations)
+        check_setting(
             abs(self.region_margin) < 10.0, "region_margin", "|margin| < 10 m", self.region_margin
         )
-        _check(self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours)
-        _check(
+        check_setting(
+            self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours
+        )
+        check_setting(
             self.candidates_per_condition >= 1,
             "candidates_per_condition",
             "an integer >= 1",
             self.candidates_per_condition,
         )
-        _check(self.ik_tolerance > 0, "ik_tolerance", "a number > 0 [m]", self.ik_tolerance)
-        _check(
+        check_setting(self.ik_tolerance > 0, "ik_tolerance", "a number > 0 [m]", self.ik_tolerance)
+        check_setting(
             self.duration is None or self.duration > 0,
             "duration",
             "null or a number > 0 [s]",
             self.duration,
         )
-        _check(self.bc_tolerance > 0, "bc_tolerance", "a number > 0 [rad]", self.bc_tolerance)
-        _check(
+        check_setting(
+            self.bc_tolerance > 0, "bc_tolerance", "a number > 0 [rad]", self.bc_tolerance
+        )
+        check_setting(
             self.bc_velocity_tolerance > 0,
             "bc_velocity_tolerance",
             "a number > 0 [rad/s]",

@@ -60,16 +60,11 @@ from evojax_motion.compile_interp import (
 )
 from evojax_motion.database import EVOLVED, Database
 from evojax_motion.dynamics import Dynamics
-from evojax_motion.errors import UserError
+from evojax_motion.errors import UserError, check_setting
 from evojax_motion.ik import solve_ik
 from evojax_motion.objective import cost_from_torques
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import TimeGrid, derivatives
-
-
-def _check(ok: bool, name: str, expected: str, value) -> None:
-    if not ok:
-        raise ValueError(f"{name}: expected {expected}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -105,23 +100,27 @@ class OnlineSettings:
     penalty: float = 1e4
 
     def __post_init__(self):
-        _check(self.n_components >= 1, "n_components", "an integer >= 1", self.n_components)
-        _check(
+        check_setting(self.n_components >= 1, "n_components", "an integer >= 1", self.n_components)
+        check_setting(
             self.limit_components >= self.n_components,
             "limit_components",
             f"an integer >= n_components ({self.n_components})",
             self.limit_components,
         )
-        _check(self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours)
-        _check(self.ik_iters >= 1, "ik_iters", "an integer >= 1", self.ik_iters)
-        _check(
+        check_setting(
+            self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours
+        )
+        check_setting(self.ik_iters >= 1, "ik_iters", "an integer >= 1", self.ik_iters)
+        check_setting(
             self.reach_tolerance > 0, "reach_tolerance", "a number > 0 [m]", self.reach_tolerance
         )
-        _check(self.limit_margin >= 0, "limit_margin", "a number >= 0 [rad]", self.limit_margin)
-        _check(
+        check_setting(
+            self.limit_margin >= 0, "limit_margin", "a number >= 0 [rad]", self.limit_margin
+        )
+        check_setting(
             self.projection_iters >= 0, "projection_iters", "an integer >= 0", self.projection_iters
         )
-        _check(self.penalty > 0, "penalty", "a number > 0", self.penalty)
+        check_setting(self.penalty > 0, "penalty", "a number > 0", self.penalty)
 
 
 class OnlineResult(NamedTuple):
