@@ -119,7 +119,9 @@ def test_duration_and_start_posture_are_honoured(env, near):
     assert r.ok.all()
     np.testing.assert_allclose(r.duration, 0.9, rtol=1e-6)
     np.testing.assert_allclose(r.q[:, 0], np.broadcast_to(start, r.q[:, 0].shape), atol=TOL_Q)
-    assert env.generate._cache_size() == 1  # same shapes: no recompilation
+    compiled = env.generate._cache_size()
+    query(env, targets, duration=0.7, q_start=start)
+    assert env.generate._cache_size() == compiled  # new values, same shapes: no recompilation
 
 
 def test_neighbours_prefer_evolved_primitives(env, near):
