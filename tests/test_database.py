@@ -46,12 +46,12 @@ def test_round_trip_is_exact(tmp_path):
 def test_load_refuses_pickles_and_garbage(tmp_path):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(UserError, match="bad.npz"):
+    with pytest.raises(UserError, match=r"bad\.npz"):
         load_database(bad)
     with pytest.raises(UserError, match="not found"):
         load_database(tmp_path / "missing.npz")
     np.savez(tmp_path / "obj.npz", q=np.array([object()], dtype=object))
-    with pytest.raises(UserError, match="obj.npz"):
+    with pytest.raises(UserError, match=r"obj\.npz"):
         load_database(tmp_path / "obj.npz")
 
 

@@ -46,7 +46,7 @@ def test_trapezoid_weights_integrate():
 
 def test_derivatives_scale_with_duration(x64):
     grid = make_time_grid(50, np.float64)
-    f, df = minimum_jerk(grid.s)
+    f, _ = minimum_jerk(grid.s)
     q = np.stack([f, 2 * f], axis=-1)[None]  # (1, T, 2)
     qd, qdd = derivatives(grid, q, np.array([0.5]))
     np.testing.assert_allclose(qd[0, :, 1], 2 * (grid.d1 @ f) / 0.5, rtol=1e-10)
