@@ -25,6 +25,7 @@ from evojax_motion.compile_optim import OptimSettings
 from evojax_motion.demos import DemoSettings
 from evojax_motion.errors import UserError
 from evojax_motion.evolution import EvolutionSettings
+from evojax_motion.parallel import ParallelSettings
 from evojax_motion.train import TrainSettings
 
 DYNAMICS_BACKENDS = ("rnea", "mjx")
@@ -53,6 +54,7 @@ class Config:
     compiler: OptimSettings = field(default_factory=OptimSettings)
     evolution: EvolutionSettings = field(default_factory=EvolutionSettings)
     train: TrainSettings = field(default_factory=TrainSettings)
+    parallel: ParallelSettings = field(default_factory=ParallelSettings)
 
     def __post_init__(self):
         if self.dynamics not in DYNAMICS_BACKENDS:

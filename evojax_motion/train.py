@@ -117,7 +117,10 @@ def check_run_dir(out: Path, cfg_dict: dict, resume: bool) -> bool:
             theirs = None
         if not isinstance(theirs, dict):
             raise UserError(f"{cfg_path}: unreadable; {out} does not hold a run of this config")
-        diff = _config_diff(theirs, cfg_dict)
+        # The device count may change between a run and its resume (results then agree up to
+        # floating-point reduction order; docs/scaling.md).
+        mine = {k: v for k, v in cfg_dict.items() if k != "parallel"}
+        diff = _config_diff({k: v for k, v in theirs.items() if k != "parallel"}, mine)
         if diff:
             shown = "; ".join(diff[:3]) + (f"; ... ({len(diff)} keys)" if len(diff) > 3 else "")
             raise UserError(f"{out}: holds the run of another config: {shown}")
@@ -297,7 +300,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     from evojax_motion import checkpoint as ck
     from evojax_motion.config import config_to_dict, config_to_yaml
     from evojax_motion.database import HUMAN, save_database
-    from evojax_motion.evolution import make_generation_step
+    from evojax_motion.parallel import make_sharded_generation_step
     from evojax_motion.timegrid import make_time_grid
     from evojax_motion.workflow import make_robot_dynamics
 
@@ -337,9 +340,11 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
     n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
     grid = make_time_grid(db.q.shape[1])
-    step_fn = make_generation_step(
-        dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, evo
-    )
+    # Conditions sharded over cfg.parallel.devices (all by default); one device = the plain step.
+    step_fn = make_sharded_generation_step(
+        dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, evo,
+        devices=cfg.parallel.devices,
+    )  # fmt: skip
     t0 = time.perf_counter()
     if start < evo.generations:  # ahead of time, so that "seconds" per generation is execution
         compiled = step_fn.lower(db, conditions, np.asarray(start + 1, np.int32)).compile()

@@ -1,0 +1,291 @@
+"""Generations per second of the sharded generation step on one device and on all visible devices.
+
+One invocation, for each condition count of ``--sweep-conditions`` (default 10000,100000):
+
+- builds generation 0 once (demonstrations, condition set, empty evolved slots:
+  ``train.initial_state`` of ``--config`` with ``evolution.conditions`` set to the count);
+- for each device count of ``--devices`` (default: 1 and all visible), in a fresh process (clean
+  peak-memory counters; an out-of-memory point is recorded as such and the sweep goes on):
+  compiles ``parallel.make_sharded_generation_step`` ahead of time (``compile_s``), runs
+  ``--generations`` generations and reports the median seconds of generations 2.. (generation 1
+  fills empty slots: different work) -> generations/s, the speed-up over one device and the
+  parallel efficiency (speed-up / devices), and each device's peak memory;
+- compares the databases that one and n devices give after generation 1 (the same input: a
+  per-step comparison) and after the last generation (chained: rounding-level differences
+  compound through survivor selection, docs/scaling.md): slots whose trajectory is bit-identical,
+  the largest |dq| and relative cost difference where both kept the same survivor, and slots
+  whose selection differs.
+
+Usage (GPU host, all GPUs visible):
+    python benchmarks/sharded_generations.py --tag h200x2
+CPU check of the script (forced host devices share the cores: correctness, not speed):
+    XLA_FLAGS=--xla_force_host_platform_device_count=2 python benchmarks/sharded_generations.py \
+        --config configs/tiny.yaml --sweep-conditions 12 --generations 2 --tag cpu2
+Writes ``benchmarks/results/sharded_generations_<tag>.json`` (+ ``.md``) and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+GIB = 2**30
+
+
+# ----------------------------------------------------------------------- state files
+
+
+def save_state(path: Path, db, conditions, n_human: int) -> None:
+    from evojax_motion.conditions import conditions_to_tree
+
+    tree = conditions_to_tree(conditions)
+    arrays = {f"db.{k}": np.asarray(v) for k, v in db._asdict().items()}
+    arrays.update({f"cond.{k}": v for k, v in tree.items() if k != "boundary"})
+    arrays.update({f"cond.boundary.{k}": v for k, v in tree["boundary"].items()})
+    np.savez(path, n_human=np.int64(n_human), **arrays)
+
+
+def load_state(path: Path):
+    from evojax_motion.conditions import conditions_from_tree
+    from evojax_motion.database import Database
+
+    with np.load(path) as z:
+        db = Database(**{k[3:]: z[k] for k in z.files if k.startswith("db.")})
+        tree: dict = {"boundary": {}}
+        for k in z.files:
+            if k.startswith("cond.boundary."):
+                tree["boundary"][k[len("cond.boundary.") :]] = z[k]
+            elif k.startswith("cond."):
+                tree[k[5:]] = z[k]
+        return db, conditions_from_tree(tree), int(z["n_human"])
+
+
+# ------------------------------------------------------------------- one point (child)
+
+
+def run_point(args) -> None:
+    """Child process: time the sharded step on ``args.devices`` devices; print one JSON line."""
+    import jax
+
+    from evojax_motion.config import load_config
+    from evojax_motion.database import Database
+    from evojax_motion.parallel import make_sharded_generation_step, padded_count
+    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.workflow import make_robot_dynamics
+
+    cfg = load_config(args.config, args.set)
+    robot, dyn = make_robot_dynamics(cfg)
+    db, cond, n_human = load_state(Path(args.child))
+    m = int(cond.target.shape[0])
+    out: dict = {"conditions": m, "devices": args.devices, "samples": int(db.q.shape[1])}
+    out["m_pad"] = padded_count(m, args.devices)
+    try:
+        step = make_sharded_generation_step(
+            dyn, make_time_grid(db.q.shape[1]), robot.lower, robot.upper, n_human,
+            cfg.basis, cfg.compiler, cfg.evolution, devices=args.devices,
+        )  # fmt: skip
+        t0 = time.perf_counter()
+        compiled = step.lower(db, cond, np.asarray(1, np.int32)).compile()
+        out["compile_s"] = time.perf_counter() - t0
+        seconds, costs = [], []
+        for g in range(1, args.generations + 1):
+            t0 = time.perf_counter()
+            new, stats = compiled(db, cond, np.asarray(g, np.int32))
+            db = Database(*(np.asarray(a) for a in jax.block_until_ready(new)))
+            seconds.append(time.perf_counter() - t0)
+            costs.append(float(stats.db_cost_mean))
+            if g == 1:  # the same input on every device count: a per-step comparison
+                np.savez(
+                    gen1_path(args.result), **{k: np.asarray(v) for k, v in db._asdict().items()}
+                )
+        later = seconds[1:] or seconds
+        out.update(
+            seconds=seconds,
+            first_generation_s=seconds[0],
+            seconds_per_generation=float(np.median(later)),
+            generations_per_s=1.0 / float(np.median(later)),
+            db_cost_mean=costs,
+        )
+        np.savez(args.result, **{k: np.asarray(v) for k, v in db._asdict().items()})
+    except Exception as e:  # out of memory at 100k conditions on one device, say
+        out["error"] = f"{type(e).__name__}: {str(e).splitlines()[0][:300]}"
+    out["peak_memory_bytes"] = [
+        int((d.memory_stats() or {}).get("peak_bytes_in_use", -1))
+        for d in jax.local_devices()[: args.devices]
+    ]
+    print(json.dumps(out))
+
+
+# ---------------------------------------------------------------------------- parent
+
+
+def gen1_path(result: str | Path) -> Path:
+    return Path(str(result).removesuffix(".npz") + "_gen1.npz")
+
+
+def compare(path_a: Path, path_b: Path, n_human: int) -> dict:
+    """How the databases that two device counts reached differ (evolved slots only)."""
+    with np.load(path_a) as a, np.load(path_b) as b:
+        same = (a["valid"] == b["valid"]) & (a["generation"] == b["generation"])
+        same, valid = same[n_human:], a["valid"][n_human:] & b["valid"][n_human:]
+        both = same & valid
+        qa, qb = a["q"][n_human:][both], b["q"][n_human:][both]
+        ca, cb = a["cost"][n_human:][both], b["cost"][n_human:][both]
+        bitwise = np.all(qa == qb, axis=(1, 2))
+        return {
+            "humans_bitwise": bool(
+                all(a[k][:n_human].tobytes() == b[k][:n_human].tobytes() for k in a.files)
+            ),
+            "slots_compared": int(both.sum()),
+            "q_bitwise_fraction": float(bitwise.mean()) if both.any() else None,
+            "q_max_abs_diff": float(np.abs(qa - qb).max(initial=0.0)),
+            "cost_max_rel_diff": float(np.abs(ca / cb - 1.0).max(initial=0.0)),
+            "selection_differs": int((~same).sum()),
+        }
+
+
+def child_env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    # JAX preallocates 75 % of each GPU; give the step what the card has (one process per run)
+    env.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.95")
+    if "xla_force_host_platform_device_count" in env.get("XLA_FLAGS", ""):
+        # forced CPU devices share one thread pool in which waiting collectives block threads:
+        # with too few threads a generation can deadlock (docs/scaling.md)
+        env.setdefault("PJRT_NPROC", "32")
+    return env
+
+
+def markdown(result: dict) -> str:
+    m = result["machine"]
+    lines = [
+        f"Machine: {m['device_count']} x {m['device_kind']} ({m['platform']}, {m['cpu_count']} "
+        f"CPUs), jax {m['jax']}, {m['date']}. Config: `{result['config']}`"
+        + (f" with {', '.join(result['overrides'])}" if result["overrides"] else "")
+        + f". Command: `{m['command']}`",
+        "",
+        "| conditions | devices | compile s | s / generation | generations / s | speed-up | "
+        "efficiency | peak GiB / device | gen 1: q bit-identical | gen 1: max abs dq [rad] | "
+        "last gen: max abs dq [rad] |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in result["points"]:
+        peak_bytes = max(r.get("peak_memory_bytes") or [-1])
+        peak = f"{peak_bytes / GIB:.1f}" if peak_bytes >= 0 else "-"  # CPU: no allocator stats
+        if "error" in r:
+            lines.append(
+                f"| {r['conditions']} | {r['devices']} | - | - | - | - | - | {peak} | "
+                f"{r['error'][:60]} | - | - |"
+            )
+            continue
+        cmp = (r.get("vs_one_device") or {}).get("generation_1", {})
+        last = (r.get("vs_one_device") or {}).get("final", {})
+        bit = cmp.get("q_bitwise_fraction")
+        lines.append(
+            f"| {r['conditions']} | {r['devices']} | {r['compile_s']:.1f} | "
+            f"{r['seconds_per_generation']:.4g} | {r['generations_per_s']:.3g} | "
+            f"{r.get('speedup', float('nan')):.2f} | {r.get('efficiency', float('nan')):.2f} | "
+            f"{peak} | {'-' if bit is None else f'{100 * bit:.1f} %'} | "
+            f"{cmp.get('q_max_abs_diff', float('nan')):.2g} | "
+            f"{last.get('q_max_abs_diff', float('nan')):.2g} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default=str(ROOT / "configs" / "catch_ball.yaml"))
+    p.add_argument("--set", action="append", default=[], help="KEY=VALUE config override")
+    p.add_argument("--sweep-conditions", default="10000,100000")
+    p.add_argument("--devices", default="", help="e.g. 1,2,4 (default: 1 and all visible)")
+    p.add_argument("--generations", type=int, default=3, help="timed generations per point")
+    p.add_argument("--tag", default="", help="suffix of the JSON name (default: platform)")
+    p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--child", default="", help=argparse.SUPPRESS)
+    p.add_argument("--result", default="", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        args.devices = int(args.devices)
+        run_point(args)
+        return
+
+    import jax
+    from generations_per_sec import build, machine_info
+
+    from evojax_motion.config import load_config
+    from evojax_motion.database import HUMAN
+
+    cfg = load_config(args.config, args.set)
+    n_all = jax.device_count()
+    counts = sorted({1, n_all}) if not args.devices else [int(x) for x in args.devices.split(",")]
+    result = {
+        "machine": machine_info(),
+        "config": args.config,
+        "overrides": args.set,
+        "generations": args.generations,
+        "points": [],
+    }
+    tag = args.tag or result["machine"]["platform"]
+    out = Path(args.out_dir) / f"sharded_generations_{tag}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        for m in [int(x) for x in args.sweep_conditions.split(",") if x]:
+            t0 = time.perf_counter()
+            _, _, _, db, cond = build(cfg, m)
+            n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
+            state = Path(tmp) / f"state_{m}.npz"
+            save_state(state, db, cond, n_human)
+            print(f"conditions {m}: generation 0 built in {time.perf_counter() - t0:.1f} s")
+            base = None
+            for n in counts:
+                res_path = Path(tmp) / f"db_{m}_{n}.npz"
+                cmd = [sys.executable, __file__, "--config", args.config, "--child", str(state),
+                       "--devices", str(n), "--generations", str(args.generations),
+                       "--result", str(res_path)]  # fmt: skip
+                for s in args.set:
+                    cmd += ["--set", s]
+                proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env())
+                lines = proc.stdout.strip().splitlines()
+                if proc.returncode != 0 or not lines:
+                    err = f"exit {proc.returncode}: {proc.stderr.strip()[-300:]}"
+                    point = {"conditions": m, "devices": n, "peak_memory_bytes": [], "error": err}
+                else:
+                    point = json.loads(lines[-1])
+                if "error" not in point:
+                    if n == 1:
+                        base = (point, res_path)
+                        point["speedup"] = point["efficiency"] = 1.0
+                    elif base is not None:
+                        point["speedup"] = (
+                            base[0]["seconds_per_generation"] / point["seconds_per_generation"]
+                        )
+                        point["efficiency"] = point["speedup"] / n
+                        point["vs_one_device"] = {
+                            "generation_1": compare(
+                                gen1_path(base[1]), gen1_path(res_path), n_human
+                            ),
+                            "final": compare(base[1], res_path, n_human),
+                        }
+                result["points"].append(point)
+                print(json.dumps({k: v for k, v in point.items() if k != "seconds"}), flush=True)
+                out.write_text(json.dumps(result, indent=2) + "\n")  # partial results survive
+    table = markdown(result)
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    print(f"\nwritten: {out}")
+
+
+if __name__ == "__main__":
+    main()
