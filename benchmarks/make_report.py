@@ -135,12 +135,19 @@ def main() -> None:
     lines += json_summaries(
         "online_latency_*.json",
         "Online latency (`benchmarks/online_latency.py`)",
-        ["single", "batched", "database"],
+        ["single_query", "batched", "database", "targets"],
     )
     lines += json_summaries(
-        "online_quality_*.json",
+        "online_quality*.json",
         "Online quality (`benchmarks/online_quality.py`)",
-        ["summary", "targets"],
+        [
+            "run",
+            "targets",
+            "criteria",
+            "ratio_learned_over_optimised",
+            "limit_violations",
+            "hand_error_m",
+        ],
     )
     lines += dynamics_section()
     lines += import_section()
