@@ -3,8 +3,9 @@
 The paper solved eq. 3-5 with DONLP2, a sequential quadratic programming code; this is the same
 kind of solver on exactly our reduced problem, in float64, one condition at a time:
 
-- variables: the free null-space coordinates z of the BC system (the same parametrisation as
-  ``compile_optim``, built from the same basis and boundary in float64), so the BCs hold exactly;
+- variables: the free null-space coordinates z of the BC system (``compile_optim``'s reduced
+  problem, built by the same code from the same basis and boundary, then cast to float64), so the
+  BCs hold as well as ours and the feasible set is the same;
 - objective: ``0.5 * int |tau|^2 dt`` (eq. 5), divided by its value at the start so that SLSQP's
   ``ftol`` is relative; torques from C MuJoCo's ``mj_inverse`` (a loop over the samples, gradient
   by finite differences: ``gradient="mujoco-fd"``) or from the float64 JAX RNEA with its exact
@@ -56,10 +57,6 @@ class ReferenceResult(NamedTuple):
     message: list
 
 
-def _f64(tree):
-    return jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a, np.float64)), tree)
-
-
 class MujocoCost:
     """``0.5 * D * sum_i w_i |tau_i|^2`` with ``tau`` from C MuJoCo's ``mj_inverse`` (float64)."""
 
@@ -100,7 +97,9 @@ def torque_costs_f64(robot: Robot, grid: TimeGrid, q, duration) -> np.ndarray:
         dyn = make_dynamics(robot, "rnea", jnp.float64)
         g64 = grid._replace(**{k: np.asarray(v, np.float64) for k, v in grid._asdict().items()})
         fn = jax.jit(jax.vmap(lambda qq, dd: torque_cost(dyn, g64, qq, dd)))
-        out = fn(jnp.asarray(np.asarray(q, np.float64)), jnp.asarray(np.asarray(duration, np.float64)))
+        out = fn(
+            jnp.asarray(np.asarray(q, np.float64)), jnp.asarray(np.asarray(duration, np.float64))
+        )
         return np.asarray(out)
 
 
@@ -113,25 +112,39 @@ def solve_reference(
     gradient: str = "jax",
     maxiter: int = SLSQP_MAXITER,
     ftol: float = SLSQP_FTOL,
+    lower=None,
+    upper=None,
 ) -> ReferenceResult:
-    """SLSQP on every condition of the batch (see the module docstring). Float64 throughout."""
+    """SLSQP on every condition of the batch (see the module docstring). Float64 throughout.
+
+    ``lower``, ``upper``: joint limits ``(J,)`` [rad], default the robot's; the constraints use
+    them shrunk by ``settings.limit_margin``.
+    """
     if gradient not in GRADIENTS:
         raise ValueError(f"gradient: expected one of {GRADIENTS}, got {gradient!r}")
     settings = OptimSettings() if settings is None else settings
+    # The reduced problem is built exactly as the compiler builds it (same dtype, so the same
+    # binding BC directions, start and null space), then solved in float64.
+    build = jax.jit(
+        lambda b, bc: reduced_problems(
+            b, bc, grid, settings.n_components, settings.bc_leak, settings.max_free_per_joint
+        )
+    )
+    problems, _, _ = build(basis, boundary)
+    problems = jax.tree_util.tree_map(
+        lambda a: np.asarray(a, np.float64) if np.asarray(a).dtype.kind == "f" else np.asarray(a),
+        problems,
+    )
     with jax.enable_x64(True):
         g64 = grid._replace(**{k: np.asarray(v, np.float64) for k, v in grid._asdict().items()})
-        problems, _, _ = jax.jit(reduced_problems, static_argnums=(2, 3, 4))(
-            _f64(basis), _f64(boundary), g64, settings.n_components, settings.rank_rtol
-        )
-        problems = jax.tree_util.tree_map(np.asarray, problems)
-        lo = np.asarray(robot.lower, np.float64) + settings.limit_margin
-        hi = np.asarray(robot.upper, np.float64) - settings.limit_margin
+        lower = robot.lower if lower is None else lower
+        upper = robot.upper if upper is None else upper
+        lo = np.asarray(lower, np.float64) + settings.limit_margin
+        hi = np.asarray(upper, np.float64) - settings.limit_margin
         if gradient == "jax":
             dyn = make_dynamics(robot, "rnea", jnp.float64)
             objective = make_objective(dyn, g64, lo, hi, 0.0)
-            value_and_grad = jax.jit(
-                jax.value_and_grad(lambda z, prob: objective(z, prob)[1])
-            )
+            value_and_grad = jax.jit(jax.value_and_grad(lambda z, prob: objective(z, prob)[1]))
         else:
             mj_cost = MujocoCost(robot, grid)
 

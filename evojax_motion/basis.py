@@ -101,7 +101,7 @@ class Neighbours(NamedTuple):
     within the radius (all of them, not only the k); short: (C,) bool, fewer than k inside.
     """
 
-    index: jnp.ndarray
+    index: jnp.ndarray  # type: ignore[assignment]  # (a field, shadowing tuple.index)
     mask: jnp.ndarray
     distance: jnp.ndarray
     n_inside: jnp.ndarray
@@ -114,7 +114,7 @@ class Basis(NamedTuple):
     mean: (C, T, J) masked mean trajectory; components: (C, K, T, J), unit norm over T per joint,
     zero where the neighbours span fewer than K directions; variance: (C, K, J) variance of the
     neighbours' coefficients along each component [rad^2] (sum over the T samples);
-    duration: (C,) masked mean duration [s]; count: (C,) int32 neighbours used.
+    duration: (C,) masked mean duration [s]; n_neighbours: (C,) int32 neighbours used.
     Where a condition has no valid neighbour, ``mean`` and ``duration`` are NaN so everything
     compiled from it is flagged non-finite.
     """
@@ -123,7 +123,7 @@ class Basis(NamedTuple):
     components: jnp.ndarray
     variance: jnp.ndarray
     duration: jnp.ndarray
-    count: jnp.ndarray
+    n_neighbours: jnp.ndarray
 
 
 def rotation_distance(rot_a: jnp.ndarray, rot_b: jnp.ndarray) -> jnp.ndarray:
@@ -229,7 +229,7 @@ def pca_basis(
     ``q: (N, T, J)``, ``duration: (N,)`` from the database, ``neighbours`` from
     `select_neighbours` (``C`` conditions, ``k`` slots); ``n_components`` (K) is static.
     Returns a `Basis` (``mean (C, T, J)``, ``components (C, K, T, J)``, ``variance (C, K, J)``,
-    ``duration (C,)``, ``count (C,)``). Pure and jittable.
+    ``duration (C,)``, ``n_neighbours (C,)``). Pure and jittable.
     """
     x = q[neighbours.index]  # (C, k, T, J)
     # joint axis last in every output: mean (T, J), components (K, T, J), variance (K, J)
@@ -245,7 +245,7 @@ def pca_basis(
         components=comps,
         variance=var,
         duration=jnp.where(count > 0, dur, jnp.nan),
-        count=count.astype(jnp.int32),
+        n_neighbours=count.astype(jnp.int32),
     )
 
 

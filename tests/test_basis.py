@@ -53,7 +53,7 @@ def test_settings_validation():
 
 
 def test_neighbours_match_numpy_and_skip_invalid(data):
-    q, cond, valid, dur, targets = data
+    _, cond, valid, _, targets = data
     k, radius = 10, 0.15
     nb = jax.jit(select_neighbours, static_argnums=(3,))(
         jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(targets), k, radius
@@ -72,7 +72,7 @@ def test_neighbours_match_numpy_and_skip_invalid(data):
 
 
 def test_neighbours_with_few_valid_entries_are_masked(data):
-    q, cond, valid, dur, targets = data
+    _, cond, _, _, targets = data
     few = np.zeros(N, bool)
     few[[3, 7, 11]] = True
     nb = select_neighbours(jnp.asarray(cond), jnp.asarray(few), jnp.asarray(targets), 5, 0.15)
@@ -128,7 +128,7 @@ def test_pca_matches_numpy_svd(data):
     for c in range(C):
         rows = idx[c][mask[c]]
         np.testing.assert_allclose(float(basis.duration[c]), dur[rows].mean(), rtol=1e-6)
-        assert int(basis.count[c]) == len(rows)
+        assert int(basis.n_neighbours[c]) == len(rows)
         for j in range(J):
             x = q[rows, :, j].astype(np.float64)
             mean = x.mean(axis=0)
@@ -160,7 +160,7 @@ def test_pca_with_fewer_neighbours_than_components(data):
     np.testing.assert_allclose(np.asarray(basis.mean[1]), q[np.asarray(nb.index)[1, 0]], atol=0)
     # No neighbour at all: NaN mean and duration, so whatever is compiled from it is flagged.
     assert np.isnan(np.asarray(basis.mean[2])).all() and np.isnan(float(basis.duration[2]))
-    assert int(basis.count[2]) == 0
+    assert int(basis.n_neighbours[2]) == 0
 
 
 def test_validators():

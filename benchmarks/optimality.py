@@ -1,0 +1,252 @@
+"""How close the optimisation compiler (paper sec. 2.2, eq. 3-5) gets to a float64 SLSQP solve.
+
+For >= 100 conditions drawn as the evolution draws them (``conditions.make_conditions``: catch
+points around the synthetic demonstrations, IK final postures, rest-to-rest BCs), each optimiser
+variant of ``compile_optim`` runs on the same bases and boundaries as the float64 SciPy SLSQP
+reference (``slsqp_reference``, same reduced problem, same start). The gap of a condition is
+``(ours - ref) / ref`` on the float64 eq. 5 cost of the returned trajectories (negative: we found a
+lower minimum, allowed). Writes ``benchmarks/results/optimality_<platform>.json`` and prints a
+markdown table. Compile and run times are measured separately (second call, no compile).
+
+    python benchmarks/optimality.py                       # 100 conditions, T = 100, all variants
+    python benchmarks/optimality.py --variants newton,adam-200 --conditions 300
+    python benchmarks/optimality.py --synthetic           # without evojax_motion.demos
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.slsqp_reference import solve_reference, torque_costs_f64
+from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compile_interp import Boundary
+from evojax_motion.compile_optim import OptimSettings, make_optimisation_compiler
+from evojax_motion.database import make_database
+from evojax_motion.dynamics import make_dynamics
+from evojax_motion.robot import load_robot
+from evojax_motion.timegrid import make_time_grid
+
+RESULTS = Path(__file__).resolve().parent / "results"
+# Optimiser variants compared (name -> OptimSettings overrides); the default is "newton".
+VARIANTS = {
+    "newton": {},
+    "newton-2starts": {"n_starts": 2},
+    "newton-4starts": {"n_starts": 4},
+    "newton-h2": {"hessian_every": 2, "max_iters": 30},
+    "bfgs": {"method": "bfgs", "max_iters": 100},
+    "bfgs-4starts": {"method": "bfgs", "max_iters": 100, "n_starts": 4},
+    "adam-200": {"method": "adam", "max_iters": 200, "learning_rate": 0.1},
+    "adam-1000": {"method": "adam", "max_iters": 1000, "learning_rate": 0.03},
+    "lbfgs-60": {"method": "lbfgs", "max_iters": 60},
+}
+
+
+def synthetic_database(robot, dyn, n, t, key):
+    """Fallback demonstrations: minimum-jerk rest-to-rest motions to random in-range postures."""
+    k1, k2 = jax.random.split(key)
+    lo, hi = np.asarray(robot.lower), np.asarray(robot.upper)
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    final = mid + 0.6 * half * np.asarray(jax.random.uniform(k1, (n, len(lo)), minval=-1, maxval=1))
+    s = np.linspace(0.0, 1.0, t)[None, :, None]
+    shape = s**3 * (10 - 15 * s + 6 * s**2)
+    bump = (s * (1 - s)) ** 2 * np.asarray(jax.random.normal(k2, (n, 1, len(lo)))) * 0.5
+    rest = np.asarray(robot.rest)[None, None]
+    q = np.clip(rest + (final[:, None] - rest) * shape + bump, lo, hi).astype(np.float32)
+    pos = np.asarray(jax.vmap(lambda qq: dyn.site_pose(qq)[0])(jnp.asarray(q[:, -1])))
+    duration = np.full(n, 1.0, np.float32)
+    return make_database(q, duration, pos)
+
+
+def synthetic_conditions(db, robot, m, basis_settings, key):
+    """Fallback conditions: a demonstration's final posture perturbed, from rest, at rest."""
+    idx = np.asarray(jax.random.choice(key, db.q.shape[0], (m,), replace=False))
+    noise = 0.05 * np.asarray(jax.random.normal(jax.random.fold_in(key, 1), (m, db.q.shape[2])))
+    lo, hi = np.asarray(robot.lower) + 0.05, np.asarray(robot.upper) - 0.05
+    qf = np.clip(db.q[idx, -1] + noise, lo, hi).astype(np.float32)
+    z = np.zeros_like(qf)
+    rest = np.broadcast_to(np.asarray(robot.rest, np.float32), qf.shape)
+    return db.condition[idx], Boundary(rest, qf, z, z, db.duration[idx])
+
+
+def build_problem(args):
+    robot = load_robot(args.robot)
+    dyn = make_dynamics(robot, "rnea")
+    grid = make_time_grid(args.samples)
+    bs = BasisSettings()
+    key = jax.random.key(args.seed)
+    k_demo, k_cond = jax.random.split(key)
+    if args.synthetic:
+        db = synthetic_database(robot, dyn, args.demos, args.samples, k_demo)
+        targets, boundary = synthetic_conditions(db, robot, args.conditions, bs, k_cond)
+    else:
+        from evojax_motion.conditions import make_conditions
+        from evojax_motion.demos import DemoSettings, generate_demonstrations
+        from evojax_motion.evolution import EvolutionSettings
+
+        db, _ = generate_demonstrations(
+            robot, dyn, DemoSettings(count=args.demos, samples=args.samples), k_demo
+        )
+        conds = make_conditions(
+            db, dyn, robot, EvolutionSettings(conditions=args.conditions), bs, grid, k_cond
+        )
+        targets, boundary = conds.target, conds.boundary
+    nb = select_neighbours(
+        jnp.asarray(db.condition), jnp.asarray(db.valid), jnp.asarray(targets),
+        bs.neighbours, bs.radius, bs.w_pos,
+    )  # fmt: skip
+    basis = pca_basis(jnp.asarray(db.q), jnp.asarray(db.duration), nb, OptimSettings().n_components)
+    boundary = jax.tree_util.tree_map(jnp.asarray, boundary)
+    return robot, dyn, grid, basis, boundary
+
+
+def stats(gap):
+    return {
+        "median": float(np.median(gap)),
+        "p95": float(np.percentile(gap, 95)),
+        "max": float(np.max(gap)),
+        "min": float(np.min(gap)),
+        "frac_above_1pct": float(np.mean(gap > 0.01)),
+    }
+
+
+def run_variant(name, overrides, robot, dyn, grid, basis, boundary, ref_cost):
+    settings = OptimSettings(**overrides)
+    compile_fn = make_optimisation_compiler(dyn, grid, robot.lower, robot.upper, settings)
+    t0 = time.perf_counter()
+    compiled = compile_fn.lower(basis, boundary).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(compiled(basis, boundary))
+    run_s = time.perf_counter() - t0
+    ours = torque_costs_f64(robot, grid, out.q, boundary.duration)
+    gap = (ours - ref_cost) / ref_cost
+    it = np.asarray(out.iterations)
+    return {
+        "settings": overrides,
+        "gap": stats(gap),
+        "iterations": {"median": float(np.median(it)), "max": int(it.max())},
+        "converged": float(np.mean(np.asarray(out.converged))),
+        "within_limits": float(np.mean(np.asarray(out.within_limits))),
+        "finite": float(np.mean(np.asarray(out.finite))),
+        "bc_residual_max": float(np.nanmax(np.asarray(out.bc_residual))),
+        "compile_s": compile_s,
+        "run_s": run_s,
+        "gaps": gap.tolist(),
+    }
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--conditions", type=int, default=100)
+    p.add_argument("--samples", type=int, default=100, help="T")
+    p.add_argument("--demos", type=int, default=311)
+    p.add_argument("--robot", default="mahru_arm")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--variants", default=",".join(VARIANTS))
+    p.add_argument("--synthetic", action="store_true", help="fallback demonstrations")
+    p.add_argument(
+        "--fd-subset",
+        type=int,
+        default=5,
+        help="also solve this many conditions with mujoco mj_inverse + FD gradients",
+    )
+    p.add_argument("--out", default=None, help="JSON path (default results/optimality_<plat>.json)")
+    args = p.parse_args(argv)
+    names = [v for v in args.variants.split(",") if v]
+    unknown = sorted(set(names) - set(VARIANTS))
+    if unknown:
+        p.error(f"--variants: unknown {unknown}; expected some of {sorted(VARIANTS)}")
+
+    plat = jax.devices()[0].platform
+    t0 = time.perf_counter()
+    robot, dyn, grid, basis, boundary = build_problem(args)
+    setup_s = time.perf_counter() - t0
+    print(
+        f"problem: {args.conditions} conditions, T={args.samples}, setup {setup_s:.1f} s",
+        flush=True,
+    )
+
+    t0 = time.perf_counter()
+    ref = solve_reference(robot, grid, basis, boundary, OptimSettings(), gradient="jax")
+    ref_s = time.perf_counter() - t0
+    report = {
+        "platform": plat,
+        "device": str(jax.devices()[0]),
+        "machine": platform.processor() or platform.machine(),
+        "conditions": args.conditions,
+        "samples": args.samples,
+        "synthetic": args.synthetic,
+        "reference": {
+            "solver": "scipy SLSQP, float64, JAX RNEA gradient",
+            "success": float(ref.success.mean()),
+            "iterations_median": float(np.median(ref.iterations)),
+            "wall_s_per_condition_median": float(np.median(ref.wall_s)),
+            "total_s": ref_s,
+            "max_violation": float(ref.max_violation.max()),
+        },
+        "variants": {},
+    }
+    print(
+        f"SLSQP (jax grad): {ref_s:.1f} s, median {np.median(ref.iterations):.0f} iterations, "
+        f"{np.median(ref.wall_s) * 1e3:.0f} ms per condition",
+        flush=True,
+    )
+    if args.fd_subset > 0:
+        sub = slice(0, args.fd_subset)
+        take = jax.tree_util.tree_map(lambda a: a[sub], (basis, boundary))
+        fd = solve_reference(robot, grid, *take, OptimSettings(), gradient="mujoco-fd")
+        agree = (fd.cost - ref.cost[sub]) / ref.cost[sub]
+        report["reference"]["mujoco_fd"] = {
+            "conditions": args.fd_subset,
+            "wall_s_per_condition_median": float(np.median(fd.wall_s)),
+            "iterations_median": float(np.median(fd.iterations)),
+            "rel_cost_diff_vs_jax_grad_max": float(np.max(np.abs(agree))),
+        }
+        print(
+            f"SLSQP (mj_inverse, FD grad) on {args.fd_subset}: "
+            f"{np.median(fd.wall_s) * 1e3:.0f} ms per condition, "
+            f"max |cost diff| {np.max(np.abs(agree)):.2e}",
+            flush=True,
+        )
+
+    out = Path(args.out) if args.out else RESULTS / f"optimality_{plat}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        res = run_variant(name, VARIANTS[name], robot, dyn, grid, basis, boundary, ref.cost)
+        report["variants"][name] = res
+        g = res["gap"]
+        print(
+            f"{name}: median {g['median']:.3%} p95 {g['p95']:.3%} max {g['max']:.2%}, "
+            f"run {res['run_s']:.2f} s, compile {res['compile_s']:.1f} s",
+            flush=True,
+        )
+        out.write_text(json.dumps(report, indent=1))  # after every variant: partial runs count
+    print()
+    print(
+        "| variant | median gap | p95 gap | max gap | > 1 % | iterations (median) | "
+        "within limits | run [s] | compile [s] |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, res in report["variants"].items():
+        g = res["gap"]
+        print(
+            f"| {name} | {g['median']:.4%} | {g['p95']:.3%} | {g['max']:.2%} | "
+            f"{g['frac_above_1pct']:.0%} | {res['iterations']['median']:.0f} | "
+            f"{res['within_limits']:.0%} | {res['run_s']:.2f} | {res['compile_s']:.1f} |"
+        )
+    print(f"\nwritten to {out}")
+
+
+if __name__ == "__main__":
+    main()

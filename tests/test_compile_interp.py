@@ -1,0 +1,217 @@
+"""Movement compiler via interpolation (eq. 1-2): exact BCs, minimum norm, held-out demos."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from evojax_motion.basis import Basis, pca_basis, select_neighbours
+from evojax_motion.compile_interp import (
+    RANK_RTOL,
+    STRICT_RANK_RTOL,
+    Boundary,
+    basis_functions,
+    coefficient_scale,
+    compile_interpolation,
+    validate_boundary,
+)
+from evojax_motion.errors import UserError
+from evojax_motion.timegrid import make_time_grid
+
+T, J, K, C = 24, 3, 3, 6
+TOL_BC_F32 = 1e-5  # rad, rad/s: BCs of a solvable system in float32
+# Ill-conditioned systems (here up to cond ~1e5) need large coefficients: the BCs then hold to the
+# float32 rounding of each sample's sum of terms, ``size_t = |mean_t| + sum_k |x_k f_k(t)|``, i.e.
+# ROUNDING_EPS epsilons of size at the ends for q and of sum_t |d1_t| size_t / D for qd (the end
+# stencil amplifies rounding by ~10 / h). The bound is max(TOL_BC_F32, that).
+ROUNDING_EPS = 2.0
+TOL_MIN_NORM = 1e-4  # relative: our coefficients vs numpy lstsq on the same scaled system
+LOO_MEDIAN_DEG = 2.5  # deg: median RMS error reproducing held-out demonstrations (measured ~1.3)
+LOO_MAX_DEG = 6.0  # deg: worst held-out demonstration
+
+
+def random_basis(rng, c, t, j, k, rest_to_rest=False) -> Basis:
+    """A basis of k orthonormal smooth components per joint (float32)."""
+    s = np.linspace(0.0, 1.0, t)
+    if rest_to_rest:  # zero end slopes: the velocity rows hold only finite-difference error
+        # Degree <= 4 is differentiated exactly by the 4th-order stencils; minimum jerk (degree 5)
+        # leaves ~3e-4 of the position rows at T = 24.
+        funcs = [s**2 * (3 - 2 * s), 12 * (s**3 / 3 - s**4 / 4), s**3 * (10 - 15 * s + 6 * s**2)]
+    else:
+        funcs = [s, np.sin(np.pi * s), np.cos(2 * np.pi * s), s**3, np.sin(3 * np.pi * s)]
+    funcs = np.stack(funcs)  # (M, T)
+    comps = np.empty((c, k, t, j))
+    for ci in range(c):
+        for ji in range(j):
+            mix = funcs.T @ rng.standard_normal((len(funcs), k))  # (T, k) random combinations
+            qmat, _ = np.linalg.qr(mix)
+            comps[ci, :, :, ji] = qmat.T
+    mean = np.einsum("cjm,mt->ctj", rng.standard_normal((c, j, len(funcs))) * 0.3, funcs)
+    var = rng.uniform(0.05, 2.0, (c, k, j))
+    return Basis(
+        mean=jnp.asarray(mean, jnp.float32),
+        components=jnp.asarray(comps, jnp.float32),
+        variance=jnp.asarray(var, jnp.float32),
+        duration=jnp.ones(c, jnp.float32),
+        n_neighbours=jnp.full(c, 10, jnp.int32),
+    )
+
+
+@pytest.fixture(scope="module")
+def grid():
+    return make_time_grid(T)
+
+
+@pytest.fixture(scope="module")
+def compiled(grid):
+    return jax.jit(lambda b, bc: compile_interpolation(b, bc, grid, K))
+
+
+@pytest.fixture(scope="module")
+def compiled_strict(grid):
+    """Rank decided at float32 noise level: every numerically solvable system is solved."""
+    return jax.jit(lambda b, bc: compile_interpolation(b, bc, grid, K, STRICT_RANK_RTOL))
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    q_scale=st.floats(0.05, 1.0),
+    v_scale=st.floats(0.0, 1.0),
+    duration=st.floats(0.5, 2.0),
+)
+def test_boundary_conditions_hold_when_solvable(
+    compiled, compiled_strict, grid, seed, q_scale, v_scale, duration
+):
+    rng = np.random.default_rng(seed)
+    basis = random_basis(rng, C, T, J, K)
+    bc = Boundary(
+        *(jnp.asarray(rng.uniform(-1, 1, (C, J)) * sc, jnp.float32)
+          for sc in (q_scale, q_scale, v_scale, v_scale)),
+        duration=jnp.full(C, duration, jnp.float32),
+    )  # fmt: skip
+    out = compiled_strict(basis, bc)
+    solvable = np.asarray(out.rank).min(axis=1) == 4
+    assume(solvable.any())
+    q = np.asarray(out.q, np.float64)
+    # float32 rounding of each sample's sum of terms (ill-conditioned systems have large terms).
+    funcs = np.asarray(basis_functions(basis, K), np.float64)  # (C, J, K+1, T)
+    terms = np.abs(np.asarray(out.coeffs, np.float64))[..., None] * np.abs(funcs)
+    size = np.abs(np.asarray(basis.mean, np.float64)).transpose(0, 2, 1) + terms.sum(axis=2)
+    eps = ROUNDING_EPS * np.finfo(np.float32).eps
+    pos_err = np.maximum(np.abs(q[:, 0] - bc.q0), np.abs(q[:, -1] - bc.qf))  # (C, J)
+    pos_bound = np.maximum(TOL_BC_F32, eps * np.maximum(size[..., 0], size[..., -1]))
+    assert (pos_err[solvable] <= pos_bound[solvable]).all()
+    d1 = np.asarray(grid.d1, np.float64)[[0, -1]]
+    vel = np.einsum("et,ctj->ecj", d1, q) / duration
+    vel_err = np.maximum(np.abs(vel[0] - bc.qd0), np.abs(vel[1] - bc.qdf))  # (C, J)
+    vel_bound = eps * np.einsum("et,cjt->cje", np.abs(d1), size).max(axis=2) / duration
+    vel_bound = np.maximum(TOL_BC_F32, vel_bound)
+    assert (vel_err[solvable] <= vel_bound[solvable]).all()
+    # Well-conditioned systems (full rank at the default tolerance) meet the plain bound in q.
+    well = np.asarray(compiled(basis, bc).rank).min(axis=1) == 4
+    assert (pos_err[well] <= TOL_BC_F32).all()
+
+
+def test_minimum_norm_in_degenerate_case(compiled, grid):
+    rng = np.random.default_rng(1)
+    basis = random_basis(rng, C, T, J, K, rest_to_rest=True)
+    z = jnp.zeros((C, J), jnp.float32)
+    bc = Boundary(
+        q0=jnp.asarray(rng.uniform(-1, 1, (C, J)), jnp.float32),
+        qf=jnp.asarray(rng.uniform(-1, 1, (C, J)), jnp.float32),
+        qd0=z,
+        qdf=z,
+        duration=jnp.full(C, 0.8, jnp.float32),
+    )
+    out = compiled(basis, bc)
+    assert (np.asarray(out.rank) == 2).all()  # the velocity rows carry only O(h^4) noise
+    # numpy reference: the velocity rows are dropped, so the solution is the minimum-norm one of
+    # the scaled position rows (lstsq with the same relative cutoff).
+    funcs = np.asarray(basis_functions(basis, K), np.float64)  # (C, J, K+1, T)
+    scale = np.asarray(coefficient_scale(basis, K), np.float64)
+    d1 = np.asarray(grid.d1, np.float64)
+    mean = np.asarray(basis.mean, np.float64)
+    for c in range(C):
+        for j in range(J):
+            f = funcs[c, j]
+            a = np.stack([f[:, 0], f[:, -1], f @ d1[0], f @ d1[-1]]) * scale[c, j]
+            m = mean[c, :, j]
+            b = np.array(
+                [bc.q0[c, j] - m[0], bc.qf[c, j] - m[-1], -(d1[0] @ m), -(d1[-1] @ m)], np.float64
+            )
+            assert np.linalg.svd(a[2:], compute_uv=False)[0] < RANK_RTOL * np.linalg.norm(a[:2], 2)
+            x, *_ = np.linalg.lstsq(a[:2], b[:2], rcond=RANK_RTOL)
+            expect = x * scale[c, j]
+            got = np.asarray(out.coeffs[c, j], np.float64)
+            assert np.abs(got - expect).max() <= TOL_MIN_NORM * max(1.0, np.abs(expect).max())
+    # The position BCs still hold exactly; the velocity ones up to the basis' own end slopes.
+    np.testing.assert_allclose(np.asarray(out.q[:, 0]), np.asarray(bc.q0), atol=TOL_BC_F32)
+    np.testing.assert_allclose(np.asarray(out.q[:, -1]), np.asarray(bc.qf), atol=TOL_BC_F32)
+
+
+def test_bad_inputs_are_flagged_in_the_batch(compiled):
+    rng = np.random.default_rng(2)
+    basis = random_basis(rng, C, T, J, K)
+    mean = np.asarray(basis.mean).copy()
+    mean[1] = np.nan  # a condition without neighbours
+    basis = basis._replace(mean=jnp.asarray(mean))
+    q0 = rng.uniform(-1, 1, (C, J)).astype(np.float32)
+    q0[2, 0] = np.nan
+    z = jnp.zeros((C, J), jnp.float32)
+    bc = Boundary(jnp.asarray(q0), jnp.asarray(q0 * 0.5), z, z, jnp.ones(C, jnp.float32))
+    res = np.asarray(compiled(basis, bc).bc_residual)
+    assert np.isnan(res[1]) and np.isnan(res[2])
+    assert np.isfinite(res[[0, 3, 4, 5]]).all()
+
+
+@pytest.mark.slow
+def test_leave_one_out_reproduces_demonstrations():
+    """Each held-out demonstration, rebuilt from its neighbours with its own BCs (rest to rest)."""
+    from evojax_motion.demos import DemoSettings, generate_demonstrations
+    from evojax_motion.dynamics import make_dynamics
+    from evojax_motion.robot import load_robot
+
+    robot = load_robot("mahru_arm")
+    dyn = make_dynamics(robot, "rnea")
+    db, _ = generate_demonstrations(
+        robot, dyn, DemoSettings(count=60, samples=T), jax.random.key(3)
+    )
+    n = 30
+    q, cond, dur = jnp.asarray(db.q), jnp.asarray(db.condition), jnp.asarray(db.duration)
+    held = np.arange(n)
+    valid = jnp.asarray(~np.eye(q.shape[0], dtype=bool)[held])  # (n, N): all but the held-out one
+
+    def neighbours(v, target):
+        nb = select_neighbours(cond, v, target[None], 10, 0.15)
+        return jax.tree_util.tree_map(lambda a: a[0], nb)
+
+    nb = jax.vmap(neighbours)(valid, cond[held])
+    assert not ((np.asarray(nb.index) == held[:, None]) & np.asarray(nb.mask)).any()
+    basis = pca_basis(q, dur, nb, K)
+    z = jnp.zeros((n, q.shape[2]))
+    bc = Boundary(q[held, 0], q[held, -1], z, z, dur[held])
+    out = compile_interpolation(basis, bc, make_time_grid(T), K)
+    rms = np.degrees(np.sqrt(np.mean((np.asarray(out.q) - np.asarray(q[held])) ** 2, axis=(1, 2))))
+    print(f"leave-one-out RMS error: median {np.median(rms):.2f} deg, max {rms.max():.2f} deg")
+    assert np.median(rms) < LOO_MEDIAN_DEG
+    assert rms.max() < LOO_MAX_DEG
+
+
+def test_validate_boundary():
+    z = np.zeros((2, 3))
+    ok = validate_boundary(Boundary(z, z + 0.1, z, z, np.ones(2)), 3, -np.ones(3), np.ones(3))
+    assert ok.q0.dtype == jnp.float32
+    cases = [
+        (Boundary(z[:, :2], z, z, z, np.ones(2)), r"boundary\.q0: expected shape \(2, 3\)"),
+        (Boundary(z, z, z + np.nan, z, np.ones(2)), r"boundary\.qd0: expected finite"),
+        (Boundary(z, z, z, z, np.array([1.0, 0.0])), r"boundary\.duration: expected durations > 0"),
+        (Boundary(z, z + 2.0, z, z, np.ones(2)), r"boundary\.qf: expected joint angles within"),
+    ]
+    for bc, msg in cases:
+        with pytest.raises(UserError, match=msg):
+            validate_boundary(bc, 3, -np.ones(3), np.ones(3))

@@ -1,0 +1,208 @@
+"""Movement compiler via optimisation (eq. 3-5): gradients, optimality vs float64 SLSQP, BCs,
+limits, bad inputs, no recompilation. A 3-joint version of the shipped arm keeps compiles short."""
+
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from evojax_motion.basis import pca_basis, select_neighbours
+from evojax_motion.compile_interp import Boundary
+from evojax_motion.compile_optim import (
+    OptimSettings,
+    make_objective,
+    make_optimisation_compiler,
+    problem_trajectory,
+    reduced_problems,
+    validate_limits,
+)
+from evojax_motion.dynamics import make_dynamics
+from evojax_motion.errors import UserError
+from evojax_motion.objective import torque_cost
+from evojax_motion.robot import load_robot
+from evojax_motion.timegrid import make_time_grid
+
+# benchmarks/ is not a package of the project; its SLSQP reference is shared with the benchmark.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.slsqp_reference import (
+    SLSQP_MAXITER,
+    solve_reference,
+    torque_costs_f64,
+)
+
+JOINTS = ("shoulder_pitch", "shoulder_roll", "elbow")
+T, N_DEMOS, K = 24, 40, 4
+GOOD = 5  # conditions 0..4 are well posed; 5: NaN BC, 6: no neighbour, 7: BC outside the limits
+TOL_GAP = 0.01  # relative gap to SLSQP per condition (negative allowed: a lower local minimum)
+TOL_BC_POS = 1e-4  # rad: end postures (BCs that bind)
+# rad/s: end velocities; at T = 24 the minimum-jerk ends carry ~5e-4 x range / D of finite-
+# difference slope, which binds neither in the start nor in the optimisation (BC_LEAK)
+TOL_BC_VEL = 3e-3
+TOL_GRAD = 1e-6  # relative: float64 gradient in null-space coordinates vs central differences
+TOL_COST = 1e-5  # relative: returned cost vs eq. 5 recomputed from the returned q
+
+
+def synthetic_demos(robot, dyn, rng):
+    """Rest-to-rest minimum-jerk demonstrations with a smooth bump, and their hand positions."""
+    lo, hi = np.asarray(robot.lower), np.asarray(robot.upper)
+    rest = np.asarray(robot.rest)
+    final = rest + rng.uniform(0.3, 1.0, (N_DEMOS, len(lo))) * (0.7 * hi - rest)
+    s = np.linspace(0.0, 1.0, T)[None, :, None]
+    shape = s**3 * (10 - 15 * s + 6 * s**2)
+    bump = (s * (1 - s)) ** 2 * rng.standard_normal((N_DEMOS, 1, len(lo))) * 2.0
+    q = (rest + (final[:, None] - rest) * shape + bump).astype(np.float32)
+    pos = jax.vmap(lambda qq: dyn.site_pose(qq)[0])(jnp.asarray(q[:, -1]))
+    return q, np.asarray(pos), rng.uniform(0.8, 1.2, N_DEMOS).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    robot = load_robot("mahru_arm", joints=JOINTS)
+    dyn = make_dynamics(robot, "rnea")
+    grid = make_time_grid(T)
+    rng = np.random.default_rng(0)
+    q, cond, dur = synthetic_demos(robot, dyn, rng)
+    # Limits: the demonstrations' envelope plus 0.15 rad, so that torque-optimal motions press on
+    # them (unconstrained optima leave the ranges, PROBES.md) and the limit handling is exercised.
+    lower = np.maximum(q.min(axis=(0, 1)) - 0.15, robot.lower).astype(np.float64)
+    upper = np.minimum(q.max(axis=(0, 1)) + 0.15, robot.upper).astype(np.float64)
+    targets = cond[:8] + rng.normal(0, 0.01, (8, 3)).astype(np.float32)
+    targets[6] = np.nan  # selects no neighbour: NaN basis
+    nb = select_neighbours(
+        jnp.asarray(cond), jnp.ones(N_DEMOS, bool), jnp.asarray(targets), 8, 0.15
+    )
+    basis = pca_basis(jnp.asarray(q), jnp.asarray(dur), nb, K)
+    qf = np.clip(q[:8, -1] + rng.normal(0, 0.05, (8, 3)), lower + 0.05, upper - 0.05)
+    qf[5, 1] = np.nan
+    qf[7, 2] = upper[2] + 0.3
+    z = np.zeros((8, 3), np.float32)
+    rest = np.broadcast_to(np.asarray(robot.rest, np.float32), (8, 3))
+    boundary = Boundary(*(jnp.asarray(a, jnp.float32) for a in (rest, qf, z, z, dur[:8])))
+    compile_fn = make_optimisation_compiler(dyn, grid, lower, upper, OptimSettings())
+    out = compile_fn(basis, boundary)
+    return dict(robot=robot, dyn=dyn, grid=grid, basis=basis, boundary=boundary, lower=lower,
+                upper=upper, compile_fn=compile_fn, out=out)  # fmt: skip
+
+
+def test_settings_validation():
+    assert OptimSettings().method == "newton"
+    bad = [
+        ("method", "sgd"), ("max_iters", 0), ("learning_rate", 0.0), ("limit_margin", -0.1),
+        ("n_starts", 0), ("hessian_every", 0), ("bc_leak", 2.0), ("n_components", 0),
+        ("max_free_per_joint", 5),
+    ]  # fmt: skip
+    for field, value in bad:
+        with pytest.raises(ValueError, match=f"^{field}: expected"):
+            OptimSettings(**{field: value})
+    with pytest.raises(UserError, match="joint limits: expected finite limits"):
+        validate_limits(np.array([0.0, 1.0]), np.array([1.0, 0.5]), 2)
+
+
+def test_gradient_in_null_space_matches_finite_differences(setup, x64):
+    s = setup
+    dyn = make_dynamics(s["robot"], "rnea", jnp.float64)
+    g64 = s["grid"]._replace(
+        **{k: np.asarray(v, np.float64) for k, v in s["grid"]._asdict().items()}
+    )
+
+    def f64(tree):
+        return jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a, np.float64)), tree)
+
+    take = jax.tree_util.tree_map(lambda a: a[:2], (s["basis"], s["boundary"]))
+    st = OptimSettings()
+    problems, _, _ = reduced_problems(*f64(take), g64, K, st.bc_leak, st.max_free_per_joint)
+    # Tight limits so that the penalty term is active in the gradient too.
+    lo, hi = s["lower"] + 0.2, s["upper"] - 0.2
+    objective = make_objective(dyn, g64, lo, hi, 1e3)
+    rng = np.random.default_rng(1)
+    f = jax.jit(lambda z, prob: objective(z, prob)[0])
+    grad_f = jax.jit(jax.grad(f))
+    for c in range(2):
+        prob = jax.tree_util.tree_map(lambda a, c=c: a[c], problems)
+        z = jnp.asarray(rng.normal(0, 0.2, prob.mask.shape)) * prob.mask
+        grad = np.asarray(grad_f(z, prob))
+        h = 1e-6
+        fd = np.zeros_like(grad)
+        for idx in zip(*np.nonzero(np.asarray(prob.mask))):
+            e = jnp.zeros_like(z).at[idx].set(h)
+            fd[idx] = (f(z + e, prob) - f(z - e, prob)) / (2 * h)
+        assert np.abs(grad - fd).max() <= TOL_GRAD * max(1.0, np.abs(fd).max())
+        assert np.abs(fd).max() > 0  # a real check: the gradient is not trivially zero
+
+
+def test_matches_float64_slsqp(setup):
+    s = setup
+    good = slice(0, GOOD)
+    take = jax.tree_util.tree_map(lambda a: a[good], (s["basis"], s["boundary"]))
+    ref = solve_reference(s["robot"], s["grid"], *take, OptimSettings(), lower=s["lower"],
+                          upper=s["upper"])  # fmt: skip
+    # SLSQP stops either on ftol or when its line search cannot improve further (converged to
+    # float64 precision); it must not run out of iterations.
+    assert (ref.iterations < SLSQP_MAXITER).all()
+    out = s["out"]
+    ours = torque_costs_f64(s["robot"], s["grid"], out.q[good], take[1].duration)
+    gap = (ours - ref.cost) / ref.cost
+    print("gap to SLSQP:", np.round(gap * 100, 4), "%")
+    assert gap.max() <= TOL_GAP
+    assert np.asarray(out.within_limits[good]).all()
+    # The limits bind for some condition, else this test would not check the limit handling.
+    assert ref.max_violation.max() < 1e-6
+    near = np.min(np.minimum(ref.q - (s["lower"] + 0.02), (s["upper"] - 0.02) - ref.q), axis=(1, 2))
+    assert (near < 1e-4).any()
+
+
+def test_result_is_consistent_and_meets_bcs(setup):
+    s = setup
+    out = s["out"]
+    good = slice(0, GOOD)
+    assert np.asarray(out.finite[good]).all()
+    q, bc = (
+        np.asarray(out.q[good]),
+        jax.tree_util.tree_map(lambda a: np.asarray(a[good]), s["boundary"]),
+    )
+    assert (
+        np.abs(q[:, 0] - bc.q0).max() <= TOL_BC_POS and np.abs(q[:, -1] - bc.qf).max() <= TOL_BC_POS
+    )
+    assert np.asarray(out.bc_residual[good]).max() <= TOL_BC_VEL
+    cost = jax.vmap(lambda q, d: torque_cost(s["dyn"], s["grid"], q, d))(
+        out.q[good], s["boundary"].duration[good]
+    )
+    np.testing.assert_allclose(np.asarray(out.cost[good]), np.asarray(cost), rtol=TOL_COST)
+    assert (np.asarray(out.iterations[good]) >= 1).all()
+
+
+def test_bad_inputs_are_flagged(setup):
+    out = setup["out"]
+    assert not bool(out.finite[5])  # NaN boundary condition
+    assert not bool(out.finite[6])  # no valid neighbour: NaN basis
+    assert bool(out.finite[7]) and not bool(out.within_limits[7])  # BC outside the joint range
+    assert np.asarray(out.within_limits[:GOOD]).all()
+
+
+def test_second_call_does_not_recompile(setup):
+    s = setup
+    fn = s["compile_fn"]
+    before = fn._cache_size()
+    shifted = s["boundary"]._replace(duration=s["boundary"].duration * 1.1)
+    jax.block_until_ready(fn(s["basis"], shifted))
+    assert fn._cache_size() == before == 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["bfgs", "adam", "lbfgs"])
+def test_first_order_methods_improve_on_the_start(setup, method):
+    """The comparison optimisers run and lower the cost from the interpolation start (z = 0)."""
+    s = setup
+    take = jax.tree_util.tree_map(lambda a: a[:2], (s["basis"], s["boundary"]))
+    settings = OptimSettings(method=method, max_iters=40, limit_penalty=0.0)
+    out = make_optimisation_compiler(s["dyn"], s["grid"], s["lower"], s["upper"], settings)(*take)
+    problems, _, _ = reduced_problems(
+        *take, s["grid"], K, settings.bc_leak, settings.max_free_per_joint
+    )
+    q0 = jax.vmap(problem_trajectory)(problems, jnp.zeros(problems.mask.shape))
+    start = jax.vmap(lambda q, d: torque_cost(s["dyn"], s["grid"], q, d))(q0, take[1].duration)
+    assert (np.asarray(out.cost) < 0.99 * np.asarray(start)).all()
+    assert np.asarray(out.bc_residual).max() <= TOL_BC_VEL
