@@ -43,6 +43,7 @@ Example::
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -514,7 +515,8 @@ def _lbfgs(fun, z0, free, settings: OptimSettings) -> _Result:
     return jax.vmap(one)(z0, free, jnp.arange(b))
 
 
-_SOLVERS = {
+# Every solver: (fun, z0, free, settings) -> _Result.
+_SOLVERS: dict[str, Callable[..., _Result]] = {
     "newton": _trust_region,
     "bfgs": functools.partial(_trust_region, exact=False),
     "adam": _adam,
