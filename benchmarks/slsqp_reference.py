@@ -35,7 +35,7 @@ from evojax_motion.compile_interp import Boundary
 from evojax_motion.compile_optim import OptimSettings, make_objective, reduced_problems
 from evojax_motion.dynamics import make_dynamics
 from evojax_motion.objective import torque_cost
-from evojax_motion.robot import Robot
+from evojax_motion.robot import Robot, mj_inverse_torques
 from evojax_motion.timegrid import TimeGrid
 
 GRADIENTS = ("jax", "mujoco-fd")
@@ -61,10 +61,8 @@ class MujocoCost:
     """``0.5 * D * sum_i w_i |tau_i|^2`` with ``tau`` from C MuJoCo's ``mj_inverse`` (float64)."""
 
     def __init__(self, robot: Robot, grid: TimeGrid):
-        self.model = robot.mj_model
-        self.data = mujoco.MjData(self.model)
-        self.qpos_adr = np.asarray(robot.qpos_adr)
-        self.dof_adr = np.asarray(robot.dof_adr)
+        self.robot = robot
+        self.data = mujoco.MjData(robot.mj_model)
         self.d1 = np.asarray(grid.d1, np.float64)
         self.d2 = np.asarray(grid.d2, np.float64)
         self.w = np.asarray(grid.w, np.float64)
@@ -73,18 +71,7 @@ class MujocoCost:
         """``q (T, J)`` -> ``tau (T, J)``; uncontrolled joints at ``qpos0``, at rest."""
         qd = self.d1 @ q / duration
         qdd = self.d2 @ q / duration**2
-        d, m = self.data, self.model
-        tau = np.empty_like(q)
-        for i in range(q.shape[0]):
-            d.qpos[:] = m.qpos0
-            d.qvel[:] = 0.0
-            d.qacc[:] = 0.0
-            d.qpos[self.qpos_adr] = q[i]
-            d.qvel[self.dof_adr] = qd[i]
-            d.qacc[self.dof_adr] = qdd[i]
-            mujoco.mj_inverse(m, d)
-            tau[i] = d.qfrc_inverse[self.dof_adr]
-        return tau
+        return mj_inverse_torques(self.robot, q, qd, qdd, self.data)
 
     def __call__(self, q: np.ndarray, duration: float) -> float:
         tau = self.torques(q, duration)

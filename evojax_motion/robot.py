@@ -364,3 +364,25 @@ def load_robot(
     except (OSError, UnicodeDecodeError) as err:
         raise UserError(f"{path}: cannot read the MJCF file: {err}") from None
     return robot_from_mjcf_text(name, xml, joints, site, source=str(path))
+
+
+def mj_inverse_torques(robot: Robot, q, qd, qdd, data=None) -> np.ndarray:
+    """C MuJoCo ``mj_inverse`` (float64) of the controlled joints: the reference for every backend.
+
+    ``q, qd, qdd: (T, J)`` -> ``tau (T, J)``; uncontrolled joints are held at ``qpos0``, at rest.
+    ``data``: an ``MjData`` of ``robot.mj_model`` to reuse (one is made otherwise).
+    """
+    m = robot.mj_model
+    d = mujoco.MjData(m) if data is None else data
+    q, qd, qdd = (np.atleast_2d(np.asarray(a, np.float64)) for a in (q, qd, qdd))
+    out = np.empty_like(q)
+    for i in range(q.shape[0]):
+        d.qpos[:] = m.qpos0
+        d.qvel[:] = 0.0
+        d.qacc[:] = 0.0
+        d.qpos[robot.qpos_adr] = q[i]
+        d.qvel[robot.dof_adr] = qd[i]
+        d.qacc[robot.dof_adr] = qdd[i]
+        mujoco.mj_inverse(m, d)
+        out[i] = d.qfrc_inverse[robot.dof_adr]
+    return out

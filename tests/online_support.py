@@ -18,6 +18,7 @@ from evojax_motion.database import Database, DatabaseMeta, make_database
 from evojax_motion.dynamics import Dynamics, make_dynamics
 from evojax_motion.online import OnlineSettings, make_online_generator, online_database
 from evojax_motion.robot import Robot, load_robot
+from evojax_motion.robot import mj_inverse_torques as reference_torques
 from evojax_motion.timegrid import TimeGrid, make_time_grid
 
 SAMPLES = 32  # T: small for compile time, large enough for the BC algebra (compile_interp)
@@ -141,16 +142,4 @@ def query(env: Env, targets, duration=None, q_start=None):
 
 def mj_inverse_torques(robot: Robot, q, qd, qdd) -> np.ndarray:
     """C MuJoCo ``mj_inverse`` (float64) of the controlled joints, rows ``(T, J)`` -> ``(T, J)``."""
-    m = robot.mj_model
-    d = mujoco.MjData(m)
-    out = np.zeros(np.shape(q))
-    for i in range(len(q)):
-        d.qpos[:] = m.qpos0
-        d.qvel[:] = 0.0
-        d.qacc[:] = 0.0
-        d.qpos[robot.qpos_adr] = q[i]
-        d.qvel[robot.dof_adr] = qd[i]
-        d.qacc[robot.dof_adr] = qdd[i]
-        mujoco.mj_inverse(m, d)
-        out[i] = d.qfrc_inverse[robot.dof_adr]
-    return out
+    return reference_torques(robot, q, qd, qdd)

@@ -243,7 +243,7 @@ def test_stored_costs_match_mujoco(tiny_run):
     trajectories (timegrid derivatives in float64, trapezoid weights)."""
     import mujoco
 
-    from evojax_motion.robot import load_robot
+    from evojax_motion.robot import load_robot, mj_inverse_torques
     from evojax_motion.timegrid import make_time_grid
 
     out, _, cfg = tiny_run
@@ -257,16 +257,7 @@ def test_stored_costs_match_mujoco(tiny_run):
         q = db.q[i].astype(np.float64)
         dur = float(db.duration[i])
         qd, qdd = (grid.d1 @ q) / dur, (grid.d2 @ q) / dur**2
-        tau = np.empty_like(q)
-        for t in range(q.shape[0]):
-            data.qpos[:] = model.qpos0
-            data.qvel[:] = 0.0
-            data.qacc[:] = 0.0
-            data.qpos[robot.qpos_adr] = q[t]
-            data.qvel[robot.dof_adr] = qd[t]
-            data.qacc[robot.dof_adr] = qdd[t]
-            mujoco.mj_inverse(model, data)
-            tau[t] = data.qfrc_inverse[robot.dof_adr]
+        tau = mj_inverse_torques(robot, q, qd, qdd, data)
         cost = 0.5 * dur * np.sum(grid.w * np.sum(tau**2, axis=1))
         assert db.cost[i] == pytest.approx(cost, rel=TOL_COST_REL), (i, db.origin[i])
         checked += 1
