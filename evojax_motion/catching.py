@@ -275,14 +275,21 @@ def make_catcher(
     catch: CatchSettings | None = None,
 ):
     """Jitted ``catcher(db, p0 (B, 3), v0 (B, 3), q_start (B, J)) -> Catch``."""
-    basis_settings, settings = resolve_settings(basis_settings, settings)
-    catch = catch or CatchSettings()
-    gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
-    lower, upper = joint_limits_f32(robot)
+    lower, upper, gravity, basis_settings, settings, catch = _static_args(
+        robot, basis_settings, settings, catch
+    )
     fn = functools.partial(
         catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch
     )
     return jax.jit(exact_matmuls(fn))
+
+
+def _static_args(robot: Robot, basis_settings, settings, catch):
+    """What catcher and planner close over: limits, gravity and the resolved settings."""
+    basis_settings, settings = resolve_settings(basis_settings, settings)
+    gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
+    lower, upper = joint_limits_f32(robot)
+    return lower, upper, gravity, basis_settings, settings, catch or CatchSettings()
 
 
 def make_planner(
@@ -293,10 +300,9 @@ def make_planner(
     catch: CatchSettings | None = None,
 ):
     """Jitted ``planner(db, p0 (B, 3), v0 (B, 3)) -> CatchPlan`` (no motion)."""
-    basis_settings, settings = resolve_settings(basis_settings, settings)
-    catch = catch or CatchSettings()
-    gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
-    lower, upper = joint_limits_f32(robot)
+    lower, upper, gravity, basis_settings, settings, catch = _static_args(
+        robot, basis_settings, settings, catch
+    )
     fn = functools.partial(plan_catch, dyn, lower, upper, gravity, basis_settings, settings, catch)
     return jax.jit(exact_matmuls(fn))
 
