@@ -30,13 +30,11 @@ import itertools
 import json
 import multiprocessing as mp
 import os
-import platform
 import resource
 import subprocess
 import sys
 import tempfile
 import time
-from datetime import date
 from pathlib import Path
 
 import jax
@@ -47,6 +45,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from dynamics_throughput import machine_info  # noqa: E402  (one definition for all benchmarks)
+
 from evojax_motion.basis import pca_basis, select_neighbours  # noqa: E402
 from evojax_motion.compile_optim import make_optimisation_compiler  # noqa: E402
 from evojax_motion.config import config_from_dict, config_to_dict, load_config  # noqa: E402
@@ -55,21 +55,6 @@ from evojax_motion.evolution import make_generation_step  # noqa: E402
 from evojax_motion.timegrid import make_time_grid  # noqa: E402
 from evojax_motion.train import initial_state  # noqa: E402
 from evojax_motion.workflow import make_robot_dynamics  # noqa: E402
-
-
-def machine_info() -> dict:
-    dev = jax.devices()[0]
-    return {
-        "platform": dev.platform,
-        "device_kind": dev.device_kind,
-        "device_count": jax.device_count(),
-        "cpu_count": os.cpu_count(),
-        "processor": platform.processor() or platform.machine(),
-        "jax": jax.__version__,
-        "python": platform.python_version(),
-        "date": date.today().isoformat(),
-        "command": " ".join([Path(sys.executable).name, *sys.argv]),
-    }
 
 
 def peak_memory_bytes() -> int:
