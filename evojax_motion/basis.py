@@ -19,7 +19,10 @@ position only.
 
 `pca_basis` runs, per condition and per joint, a PCA of the masked neighbours' trajectories
 (the paper's Fig. 4): the masked mean ``(T,)`` and the leading right singular vectors of the centred
-``(k, T)`` matrix (masked rows zero) as unit-norm components, with their variances.
+``(k, T)`` matrix (masked rows zero) as unit-norm components, with their variances. On CPU by
+LAPACK's SVD; on accelerators (`jacobi_backend`) through the ``k x k`` Gram matrix and an
+elementwise parallel Jacobi eigensolver (`jacobi_eigh`), in two passes that keep the SVD's
+accuracy: a batched SVD call per small matrix made the online query ~260 targets/s on an H100.
 
 Example (a batch of C target hand positions)::
 
@@ -193,10 +196,152 @@ def select_neighbours(
     )
 
 
-def _joint_pca(x: jnp.ndarray, mask: jnp.ndarray, n_components: int):
+# Symmetric eigenproblems up to this size are solved by `jacobi_eigh` (elementwise code, batched
+# by vmap and fused by XLA); larger ones by `jnp.linalg.eigh` (a solver call per matrix on GPUs).
+JACOBI_MAX_N = 12
+# Parallel Jacobi sweeps from scratch (quadratic convergence; float32 random symmetric matrices
+# reach rounding level after 3 sweeps at n <= 5 and 5 at n = 10): up to n = 6, and above.
+JACOBI_SWEEPS_SMALL = 4
+JACOBI_SWEEPS = 6
+# Sweeps of the PCA's refinement pass (a nearly diagonal Gram).
+REFINE_SWEEPS = 2
+
+
+def _dot(a, b):
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
+def _round_robin(n: int) -> list[np.ndarray]:
+    """Static schedule of parallel Jacobi rounds for an even ``n``: every round rotates the pairs
+    of adjacent positions ``(2i, 2i + 1)``, then the matrix is permuted by the round's index
+    array so that the next round's pairs are adjacent. Circle method (one index fixed, the others
+    rotating): the ``n - 1`` rounds of a sweep meet every pair once and end in the start order."""
+    half = n // 2
+    slot = [2 * i if i < half else 2 * (n - 1 - i) + 1 for i in range(n)]  # list index -> position
+
+    def order(players):
+        out = [0] * n
+        for i, p in enumerate(players):
+            out[slot[i]] = p
+        return out
+
+    players = list(range(n))
+    perms = []
+    for _ in range(n - 1):
+        nxt = [players[0], players[-1], *players[1:-1]]
+        now, new = order(players), order(nxt)
+        perms.append(np.asarray([now.index(p) for p in new]))
+        players = nxt
+    return perms
+
+
+def jacobi_eigh(a: jnp.ndarray, sweeps: int | None = None):
+    """Eigenvalues ``w (n,)`` (unsorted) and eigenvectors ``v (n, n)`` (columns) of a small
+    symmetric ``a (n, n)``, ``a = v diag(w) v^T``, by ``sweeps`` sweeps of parallel cyclic Jacobi
+    (default `JACOBI_SWEEPS_SMALL` up to n = 6, else `JACOBI_SWEEPS`).
+
+    Each round rotates ``n / 2`` disjoint pairs at once (Numerical Recipes' stable angle) with
+    elementwise arithmetic on the whole matrix, then permutes it (`_round_robin`): a short program
+    (fast to compile) with no solver call per matrix, so under vmap a batch runs as a few fused
+    elementwise kernels per round (batched cuSOLVER/LAPACK calls for small matrices cost far more
+    than their arithmetic on GPUs). An odd ``n`` is padded with a decoupled zero row. Sizes above
+    `JACOBI_MAX_N` use ``jnp.linalg.eigh``.
+    """
+    n = a.shape[-1]
+    if n > JACOBI_MAX_N:
+        return jnp.linalg.eigh(a)
+    if sweeps is None:
+        sweeps = JACOBI_SWEEPS_SMALL if n <= 6 else JACOBI_SWEEPS
+    m = n + n % 2
+    h = m // 2
+    a = jnp.pad(a, ((0, m - n), (0, m - n)))
+    one = jnp.ones((), a.dtype)
+    perms = _round_robin(m)
+
+    def rotate_columns(x, c, s):  # columns (2i, 2i+1) of x (r, m) by the pair rotations
+        x = x.reshape(x.shape[0], h, 2)
+        x0, x1 = x[..., 0], x[..., 1]
+        return jnp.stack([c * x0 - s * x1, s * x0 + c * x1], axis=-1).reshape(-1, m)
+
+    def sweep(_, carry):
+        x, v = carry
+        for perm in perms:
+            d = jnp.diagonal(x)
+            app, aqq, apq = d[0::2], d[1::2], jnp.diagonal(x, offset=1)[0::2]
+            nz = apq != 0
+            theta = (aqq - app) / jnp.where(nz, 2.0 * apq, one)
+            t = jnp.where(theta >= 0, one, -one) / (jnp.abs(theta) + jnp.hypot(theta, one))
+            t = jnp.where(nz, t, 0.0)
+            c = jax.lax.rsqrt(t * t + 1.0)
+            s = t * c
+            x = rotate_columns(rotate_columns(x, c, s).T, c, s)  # J^T x J (x symmetric)
+            v = rotate_columns(v, c, s)
+            x, v = x[perm][:, perm], v[:, perm]
+        return x, v
+
+    x, v = jax.lax.fori_loop(0, sweeps, sweep, (a, jnp.eye(m, dtype=a.dtype)))
+    return jnp.diagonal(x)[:n], v[:n, :n]
+
+
+def jacobi_backend() -> bool:
+    """Whether small decompositions use `jacobi_eigh` (accelerators) or LAPACK (CPU).
+
+    On GPUs a batch of small SVD/eigen problems is a cuSOLVER call per matrix or a batched Jacobi
+    call, both far slower than the arithmetic (an online query has ~70 such problems per target);
+    on CPU, LAPACK is fast and `jacobi_eigh`'s long elementwise program compiles slowly (the same
+    split as ``dynamics_rnea.default_form``). Read at trace time.
+    """
+    return jax.default_backend() != "cpu"
+
+
+def gram_svd(a: jnp.ndarray):
+    """``(u (m, k), s (k,), vt (n, n))`` of a small ``a (m, n)``, ``k = min(m, n)``, singular
+    values descending, from the eigen-decomposition of ``a^T a`` (`jacobi_eigh`).
+
+    Like ``jnp.linalg.svd(a, full_matrices=True)`` for ``vt``, but singular values below
+    ~``sqrt(eps) * s[0]`` are rounding noise (the Gram squares the conditioning): for rank
+    decisions at coarser tolerances and pseudo-inverses followed by a refinement step. Columns of
+    ``u`` are zero where ``s == 0``.
+    """
+    m, n = a.shape
+    lam, v = jacobi_eigh(_dot(a.T, a))
+    order = jnp.argsort(-lam)
+    lam, v = lam[order], v[:, order]
+    k = min(m, n)
+    s = jnp.sqrt(jnp.maximum(lam[:k], 0.0))
+    u = _dot(a, v[:, :k]) / jnp.where(s > 0, s, 1.0)[None, :]
+    return jnp.where(s[None, :] > 0, u, 0.0), s, v.T
+
+
+def _pca_rows_svd(centred: jnp.ndarray, n_components: int):
+    """Leading singular values ``(K',)`` and right singular vectors ``(K', T)``, ``K' = min(k,
+    K)``, of ``centred (k, T)`` by LAPACK (CPU)."""
+    _, sv, vt = jnp.linalg.svd(centred, full_matrices=False)  # vt: (min(k, T), T)
+    avail = min(vt.shape[0], n_components)
+    return sv[:avail], vt[:avail]
+
+
+def _pca_rows_jacobi(centred: jnp.ndarray, n_components: int):
+    """As `_pca_rows_svd`, through the ``k x k`` Gram matrix (k ~ 10 rows), in two passes:
+    ``X X^T = U diag(s^2) U^T`` (`jacobi_eigh`) rotates the rows, ``Y = U^T X``; a few sweeps on
+    ``Y Y^T`` (nearly diagonal) rotate again, ``Z = W^T Y``, whose rows are ``s_i v_i``. The second
+    Gram is formed from the rotated rows, so its entries err by rounding relative to ``s_i s_j``
+    rather than to ``s_0^2``: as accurate as a (backward stable) SVD of X, with no ``sqrt(eps)``
+    floor on the small singular values."""
+    _, u = jacobi_eigh(_dot(centred, centred.T))
+    y = _dot(u.T, centred)
+    _, w = jacobi_eigh(_dot(y, y.T), REFINE_SWEEPS)
+    z = _dot(w.T, y)  # (k, T) rows s_i v_i, unordered
+    sv, order = jax.lax.top_k(jnp.sqrt(jnp.sum(z * z, axis=1)), min(z.shape[0], n_components))
+    return sv, z[order] / jnp.where(sv > 0, sv, 1.0)[:, None]
+
+
+def _joint_pca(x: jnp.ndarray, mask: jnp.ndarray, n_components: int, jacobi: bool):
     """PCA of one joint's neighbour trajectories ``x (k, T)`` with row ``mask (k,)``.
 
-    Returns ``mean (T,)``, ``components (K, T)``, ``variance (K,)``.
+    Returns ``mean (T,)``, ``components (K, T)``, ``variance (K,)``: the leading right singular
+    vectors of the centred matrix, and its squared singular values / (count - 1). ``jacobi``:
+    `_pca_rows_jacobi` (accelerators), else `_pca_rows_svd`.
     """
     w = mask.astype(x.dtype)
     count = jnp.sum(w)
@@ -204,12 +349,11 @@ def _joint_pca(x: jnp.ndarray, mask: jnp.ndarray, n_components: int):
     mean = jnp.sum(jnp.where(mask[:, None], x, 0.0), axis=0) / jnp.maximum(count, 1.0)
     mean = jnp.where(count > 0, mean, jnp.nan)
     centred = jnp.where(mask[:, None], x - mean, 0.0)
-    _, sv, vt = jnp.linalg.svd(centred, full_matrices=False)  # vt: (min(k, T), T)
+    sv, vt = (_pca_rows_jacobi if jacobi else _pca_rows_svd)(centred, n_components)
     avail = vt.shape[0]
     if avail < n_components:  # fewer rows than requested components: pad with zeros
         vt = jnp.concatenate([vt, jnp.zeros((n_components - avail, vt.shape[1]), vt.dtype)])
         sv = jnp.concatenate([sv, jnp.zeros(n_components - avail, sv.dtype)])
-    vt, sv = vt[:n_components], sv[:n_components]
     # Centred data of n rows span at most n - 1 directions; below PCA_RTOL it is rounding noise.
     rank_ok = jnp.arange(n_components) < count - 1
     keep = rank_ok & (sv > PCA_RTOL * sv[0]) & (sv[0] > 0)
@@ -233,9 +377,9 @@ def pca_basis(
     """
     x = q[neighbours.index]  # (C, k, T, J)
     # joint axis last in every output: mean (T, J), components (K, T, J), variance (K, J)
-    per_joint = jax.vmap(_joint_pca, in_axes=(2, None, None), out_axes=(1, 2, 1))
-    per_condition = jax.vmap(per_joint, in_axes=(0, 0, None))
-    mean, comps, var = per_condition(x, neighbours.mask, n_components)
+    per_joint = jax.vmap(_joint_pca, in_axes=(2, None, None, None), out_axes=(1, 2, 1))
+    per_condition = jax.vmap(per_joint, in_axes=(0, 0, None, None))
+    mean, comps, var = per_condition(x, neighbours.mask, n_components, jacobi_backend())
     w = neighbours.mask.astype(q.dtype)
     count = jnp.sum(w, axis=1)
     dur = jnp.where(neighbours.mask, duration[neighbours.index], 0.0)

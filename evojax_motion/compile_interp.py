@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.basis import Basis
+from evojax_motion.basis import Basis, gram_svd, jacobi_backend
 from evojax_motion.errors import UserError
 from evojax_motion.timegrid import TimeGrid
 
@@ -151,20 +151,36 @@ def trajectory(basis: Basis, coeffs: jnp.ndarray) -> jnp.ndarray:
     return basis.mean + jnp.einsum("cjk,cjkt->ctj", coeffs, funcs)
 
 
-def _pinv(a, rtol, ref):
+def _svd(a, jacobi: bool):
+    """``(u, s (k,), vt (n, n))`` of a small ``a (m, n)``, ``k = min(m, n)``: LAPACK, or
+    with ``jacobi`` the elementwise `basis.gram_svd` (accelerators; exact enough for `RANK_RTOL`,
+    its pseudo-inverse error is removed by the refinement step of `_joint_system`)."""
+    if jacobi:
+        return gram_svd(a)
+    return jnp.linalg.svd(a, full_matrices=True)
+
+
+def _pinv(a, rtol, ref, jacobi: bool = False):
     """``r -> a^+ r`` with singular values below ``rtol * ref`` dropped; also the kept count."""
-    u, sv, vt = jnp.linalg.svd(a, full_matrices=False)
+    if jacobi:
+        u, sv, vt = gram_svd(a)
+        vt = vt[: sv.shape[0]]
+    else:
+        u, sv, vt = jnp.linalg.svd(a, full_matrices=False)
     keep = sv > rtol * ref
     inv = jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0)
     return (lambda r: vt.T @ (inv * (u.T @ r))), jnp.sum(keep).astype(jnp.int32)
 
 
-def _joint_system(funcs, mean, scale, q0, qf, qd0, qdf, duration, d1_ends, rank_rtol, leak):
+def _joint_system(
+    funcs, mean, scale, q0, qf, qd0, qdf, duration, d1_ends, rank_rtol, leak, jacobi=False
+):
     """One joint's BC solve. ``funcs (K+1, T)``, ``mean (T,)``, ``scale (K+1,)``,
     ``d1_ends (2, T)`` (the first and last rows of the derivative operator).
 
     ``leak`` None: interpolation (rank in prior units, positions before velocities); else the
-    optimisation compiler's rule (module docstring). Returns ``coeffs (K+1,)``,
+    optimisation compiler's rule (module docstring); ``jacobi``: the interpolation rule's SVDs by
+    `basis.gram_svd` (see `_svd`). Returns ``coeffs (K+1,)``,
     ``null (K+1, K)``, ``null_mask (K,)``, ``rank ()``.
     """
     n, t = funcs.shape
@@ -183,11 +199,12 @@ def _joint_system(funcs, mean, scale, q0, qf, qd0, qdf, duration, d1_ends, rank_
         # least squares): a degenerate velocity row then costs nothing in the end postures. Where
         # all four rows are solvable this is the plain pseudo-inverse solution.
         ap, av = a[:2], a[2:]
-        _, sp, vpt = jnp.linalg.svd(ap, full_matrices=True)  # vpt: (K+1, K+1)
-        pos_solve, rank_p = _pinv(ap, rank_rtol, sp[0])
+        _, sp, vpt = _svd(ap, jacobi)  # vpt: (K+1, K+1)
+        pos_solve, rank_p = _pinv(ap, rank_rtol, sp[0], jacobi)
         # Null space of the position rows; the constant's column gives rank >= 1 (static K).
         pos_null = jnp.where((jnp.arange(1, n) >= rank_p)[None, :], vpt[1:].T, 0.0)  # (K+1, K)
-        vel_solve, rank_v = _pinv(av @ pos_null, rank_rtol, sp[0])
+        av_null = av @ pos_null
+        vel_solve, rank_v = _pinv(av_null, rank_rtol, sp[0], jacobi)
 
         def solve(r):
             x = pos_solve(r[:2])
@@ -195,7 +212,7 @@ def _joint_system(funcs, mean, scale, q0, qf, qd0, qdf, duration, d1_ends, rank_
 
         rank = rank_p + rank_v
         # The null space of all four rows at the same tolerance: rows of vt past the rank.
-        _, sv, vt = jnp.linalg.svd(a, full_matrices=True)
+        _, sv, vt = _svd(a, jacobi)
         rank_all = jnp.sum(sv > rank_rtol * sv[0])
         null_mask = jnp.arange(1, n) >= rank_all
         null = jnp.where(null_mask[None, :], vt[1:].T * scale[:, None], 0.0)
@@ -244,7 +261,13 @@ def solve_boundary(
     dtype = funcs.dtype
     d1_ends = jnp.asarray(np.asarray(grid.d1)[[0, -1]], dtype)
     mean = jnp.transpose(basis.mean, (0, 2, 1))  # (C, J, T)
-    system = functools.partial(_joint_system, d1_ends=d1_ends, rank_rtol=rank_rtol, leak=leak)
+    system = functools.partial(
+        _joint_system,
+        d1_ends=d1_ends,
+        rank_rtol=rank_rtol,
+        leak=leak,
+        jacobi=leak is None and jacobi_backend(),
+    )
     coeffs, null, null_mask, rank = jax.vmap(jax.vmap(system))(
         funcs,
         mean,

@@ -7,8 +7,11 @@ import pytest
 from scipy.linalg import subspace_angles
 from scipy.spatial.transform import Rotation
 
+import evojax_motion.basis as basis_module
 from evojax_motion.basis import (
     BasisSettings,
+    gram_svd,
+    jacobi_eigh,
     pca_basis,
     rotation_distance,
     select_neighbours,
@@ -21,6 +24,9 @@ TOL_ANGLE = 1e-3  # rad: largest principal angle between our and numpy's compone
 TOL_PCA = 1e-5  # rad: masked mean vs numpy (float32 sums of ~10 values of ~1 rad)
 TOL_VAR_REL = 1e-4  # relative: component variances vs numpy's singular values
 TOL_DIST = 1e-6  # m: distances vs numpy
+TOL_EIG = 2e-6  # relative to the largest |eigenvalue|: float32 Jacobi vs numpy (float64)
+TOL_ORTHO = 3e-6  # Jacobi eigenvectors' deviation from orthonormality (float32)
+TOL_GRAM_SVD = 1e-4  # relative: Gram-based singular values (squared conditioning) vs numpy
 
 N, T, J, K, C = 40, 20, 3, 4, 6
 
@@ -116,14 +122,46 @@ def test_orientation_term():
     assert np.asarray(nb.index)[0].tolist() == [0, 1, 2, 3]  # default: position only
 
 
-def test_pca_matches_numpy_svd(data):
+@pytest.mark.parametrize("n", [3, 4, 5, 10])
+def test_jacobi_eigh_matches_numpy(n):
+    rng = np.random.default_rng(n)
+    x = rng.standard_normal((20, n, 30)) * np.logspace(0, -3, n)[:, None]  # spread spectrum
+    a = np.einsum("bit,bjt->bij", x, x).astype(np.float32)
+    w, v = jax.jit(jax.vmap(jacobi_eigh))(jnp.asarray(a))
+    w, v = np.asarray(w, np.float64), np.asarray(v, np.float64)
+    ref = np.linalg.eigvalsh(a.astype(np.float64))
+    scale = np.abs(ref).max(axis=1, keepdims=True)
+    np.testing.assert_allclose(np.sort(w, axis=1) / scale, ref / scale, atol=TOL_EIG)
+    assert np.abs(np.einsum("bki,bkj->bij", v, v) - np.eye(n)).max() < TOL_ORTHO
+    rebuilt = np.einsum("bik,bk,bjk->bij", v, w, v)
+    assert (np.abs(rebuilt - a).max(axis=(1, 2)) / scale[:, 0]).max() < TOL_EIG * n
+
+
+def test_gram_svd_matches_numpy():
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((30, 4, 5)).astype(np.float32)
+    u, s, vt = jax.jit(jax.vmap(gram_svd))(jnp.asarray(a))
+    _, s_ref, vt_ref = np.linalg.svd(a.astype(np.float64), full_matrices=True)
+    np.testing.assert_allclose(np.asarray(s), s_ref, rtol=TOL_GRAM_SVD)
+    vt = np.asarray(vt, np.float64)
+    for i in range(4):  # each right singular vector up to its sign; the 5th spans the null space
+        np.testing.assert_allclose(np.abs(np.sum(vt[:, i] * vt_ref[:, i], axis=1)), 1.0, atol=1e-4)
+    np.testing.assert_allclose(np.abs(np.sum(vt[:, 4] * vt_ref[:, 4], axis=1)), 1.0, atol=1e-4)
+    rebuilt = np.einsum("bik,bk,bkj->bij", np.asarray(u), np.asarray(s), vt[:, :4])
+    np.testing.assert_allclose(rebuilt, a, atol=1e-5)
+
+
+@pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "jacobi"])
+def test_pca_matches_numpy_svd(data, jacobi, monkeypatch):
+    """Both PCA paths: LAPACK's SVD (CPU) and the Gram + Jacobi one (accelerators)."""
+    monkeypatch.setattr(basis_module, "jacobi_backend", lambda: jacobi)
     q, cond, valid, dur, targets = data
     k = 10
     nb = select_neighbours(jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(targets), k, 0.15)
     mask = np.asarray(nb.mask).copy()
     mask[0, 7:] = False  # some masked slots inside the top-k
     nb = nb._replace(mask=jnp.asarray(mask))
-    basis = jax.jit(pca_basis, static_argnums=(3,))(jnp.asarray(q), jnp.asarray(dur), nb, K)
+    basis = jax.jit(lambda q, d, nb: pca_basis(q, d, nb, K))(jnp.asarray(q), jnp.asarray(dur), nb)
     idx = np.asarray(nb.index)
     for c in range(C):
         rows = idx[c][mask[c]]
@@ -146,7 +184,9 @@ def test_pca_matches_numpy_svd(data):
             )
 
 
-def test_pca_with_fewer_neighbours_than_components(data):
+@pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "jacobi"])
+def test_pca_with_fewer_neighbours_than_components(data, jacobi, monkeypatch):
+    monkeypatch.setattr(basis_module, "jacobi_backend", lambda: jacobi)
     q, cond, valid, dur, targets = data
     nb = select_neighbours(jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(targets), 10, 0.15)
     mask = np.zeros((C, 10), bool)

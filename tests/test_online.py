@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from online_support import (
+    BASIS,
     SETTINGS,
     mj_inverse_torques,
     online_env,
@@ -39,6 +40,8 @@ TOL_TAU = 2e-3  # N m: float32 RNEA vs float64 mj_inverse on |tau| up to ~30 N m
 TOL_SPD = 1e-5  # relative: unrolled Cholesky vs numpy
 TOL_SPAN = 1e-4  # rad: least-squares residual of a trajectory in its PCA span (float32 data)
 TOL_PROJ = 2e-3  # rad: our penalty projection's step vs SciPy's exact QP step (penalty slack)
+TOL_JACOBI_Q = 1e-5  # rad: accelerator path (Jacobi PCA and BC solves) vs LAPACK, same query
+TOL_JACOBI_COST = 1e-3  # relative: their eq. 5 costs (qdd amplifies the 1e-7 rad differences)
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +62,35 @@ def test_settings_validation():
         OnlineSettings(n_components=3, limit_components=2)
     with pytest.raises(ValueError, match=r"^reach_tolerance: expected"):
         OnlineSettings(reach_tolerance=0.0)
+
+
+def test_accelerator_path_matches_lapack(env, near, monkeypatch):
+    """The elementwise Jacobi PCA and BC solves (what GPUs run) give the LAPACK path's motions,
+    with the projection on (limits narrowed so that every motion needs it) and off."""
+    import evojax_motion.basis as basis_module
+    import evojax_motion.compile_interp as interp_module
+    from evojax_motion.online import exact_matmuls, joint_limits_f32, online_query, to_numpy
+
+    targets, _ = near
+    lower, upper = joint_limits_f32(env.robot)
+    c = targets.shape[0]
+    rest = np.tile(np.asarray(env.robot.rest, np.float32), (c, 1))
+    args = (env.db_device, targets, np.full(c, np.nan, np.float32), rest)
+    for shrink in (1.0, 0.6):
+        mid = 0.5 * (lower + upper)
+        lo, hi = mid + shrink * (lower - mid), mid + shrink * (upper - mid)
+        out = []
+        for jacobi in (False, True):
+            for module in (basis_module, interp_module):
+                monkeypatch.setattr(module, "jacobi_backend", lambda j=jacobi: j)
+            fn = functools.partial(online_query, env.dyn, env.grid, lo, hi, BASIS, SETTINGS)
+            out.append(to_numpy(jax.jit(exact_matmuls(fn))(*args)))
+        ref, new = out
+        assert shrink == 1.0 or ref.limit_excess.min() > 0  # the projection ran
+        np.testing.assert_array_equal(ref.ok, new.ok)
+        np.testing.assert_allclose(new.q, ref.q, atol=TOL_JACOBI_Q)
+        np.testing.assert_allclose(new.cost, ref.cost, rtol=TOL_JACOBI_COST)
+        assert ((new.q >= lo) & (new.q <= hi)).all()
 
 
 def test_query_reaches_target_within_limits_and_bcs(env, near):
