@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import os
 import types
 import typing
@@ -29,6 +30,9 @@ from evojax_motion.parallel import ParallelSettings
 from evojax_motion.train import TrainSettings
 
 DYNAMICS_BACKENDS = ("rnea", "mjx")
+# Every integer of a config is a size, an index or a seed that ends up in an int32 (array shapes,
+# the generation counter, PRNG seeds); a larger one is refused here rather than overflowing later.
+INT_MIN, INT_MAX = -(2**31), 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -97,11 +101,19 @@ def _coerce(value: Any, tp, key: str):
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise UserError(f"{key}: expected an integer, got {value!r}")
+        if not INT_MIN <= value <= INT_MAX:
+            raise UserError(f"{key}: expected an integer within int32 range, got {value!r}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UserError(f"{key}: expected a number, got {value!r}")
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond float range
+            number = math.inf
+        if not math.isfinite(number):
+            raise UserError(f"{key}: expected a finite number, got {value!r}")
+        return number
     if tp is str:
         if not isinstance(value, str):
             raise UserError(f"{key}: expected a string, got {value!r}")
@@ -168,7 +180,11 @@ def load_config(path: str | os.PathLike, overrides: typing.Sequence[str] = ()) -
     if not path.is_file():
         raise UserError(f"{path}: config file not found")
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"{path}: unreadable config file ({type(e).__name__})") from None
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise UserError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if data is not None and not isinstance(data, dict):

@@ -96,6 +96,16 @@ def humans_only(db: Database) -> Database:
     return db._replace(valid=np.asarray(db.valid) & (np.asarray(db.origin) == HUMAN))
 
 
+def nonfinite_rows(db: Database) -> np.ndarray:
+    """Indices of the valid entries with NaN/inf in ``q``, ``condition`` or ``cost``, or a
+    duration that is not a finite number > 0: what a numerical failure leaves behind."""
+    q, cond = np.asarray(db.q), np.asarray(db.condition)
+    dur, cost = np.asarray(db.duration), np.asarray(db.cost)
+    finite = np.isfinite(q).all(axis=(1, 2)) & np.isfinite(cond).all(axis=1) & np.isfinite(cost)
+    finite &= np.isfinite(dur) & (dur > 0)
+    return np.flatnonzero(np.asarray(db.valid) & ~finite)
+
+
 def save_database(path: str | os.PathLike, db: Database, meta: DatabaseMeta) -> Path:
     """Write ``db`` and ``meta`` to ``path`` (.npz) atomically: a crash keeps the old file."""
     path = Path(path)

@@ -222,12 +222,17 @@ def _catch_settings(args):
 
     from evojax_motion.catching import CatchSettings
 
+    for flag, value in (("--drag", args.drag), ("--reaction", args.reaction)):
+        if value is not None and not np.isfinite(value):
+            raise UserError(f"{flag}: expected a finite number, got {value}")
     changes = {"drag": args.drag}
     if args.reaction is not None:
         changes["reaction_time"] = args.reaction
     if args.horizon is not None:
         changes["horizon"] = args.horizon
-        changes["samples"] = max(2, round(args.horizon / 0.01) + 1)
+        steps = args.horizon / 0.01
+        if np.isfinite(steps):  # else CatchSettings refuses the horizon itself
+            changes["samples"] = max(2, round(steps) + 1)
     try:
         return dataclasses.replace(CatchSettings(), **changes)
     except ValueError as e:

@@ -98,6 +98,42 @@ def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
+def check_settings(cfg: Config) -> None:
+    """Checks across config sections that need no data, before anything is computed or written.
+
+    Raises ``UserError`` naming the field: ``train.plot_condition`` beyond the conditions,
+    ``parallel.devices`` beyond the devices JAX sees, ``compiler.n_components`` not below the
+    samples T of synthetic demonstrations (a ``demos_file``'s T is checked once it is read).
+    """
+    from evojax_motion.parallel import resolve_devices
+
+    evo, tr = cfg.evolution, cfg.train
+    if tr.plot_condition is not None and tr.plot_condition >= evo.conditions:
+        raise UserError(
+            f"train.plot_condition: expected < evolution.conditions ({evo.conditions}), "
+            f"got {tr.plot_condition}"
+        )
+    resolve_devices(cfg.parallel.devices)
+    if cfg.demos_file is None:
+        check_samples(cfg, cfg.demos.samples)
+
+
+def check_samples(cfg: Config, samples: int) -> None:
+    """The basis of eq. 3 needs fewer components than time samples (K + 1 <= T)."""
+    k = cfg.compiler.n_components
+    if k >= samples:
+        where = cfg.demos_file if cfg.demos_file is not None else "demos.samples"
+        raise UserError(
+            f"compiler.n_components: expected < the {samples} time samples of the "
+            f"demonstrations ({where}), got {k}"
+        )
+
+
+def _temporaries(out: Path) -> list[Path]:
+    """Temporary files of atomic writes (``.NAME.XXXX.tmp``) left by a killed run."""
+    return [p for p in out.glob(".*.tmp") if p.is_file()] if out.is_dir() else []
+
+
 def check_run_dir(out: Path, cfg_dict: dict, resume: bool) -> bool:
     """Refuse a folder that is not this run's; True when ``out`` already holds this run.
 
@@ -108,7 +144,9 @@ def check_run_dir(out: Path, cfg_dict: dict, resume: bool) -> bool:
 
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: expected a run directory, found a file")
-    entries = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    leftovers = {p.name for p in _temporaries(out)}  # never read; removed when the run starts
+    names = (p.name for p in out.iterdir()) if out.is_dir() else ()
+    entries = sorted(n for n in names if n not in leftovers)
     cfg_path = out / CONFIG_FILE
     if cfg_path.is_file():
         try:
@@ -222,17 +260,24 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     import jax
 
     from evojax_motion.conditions import make_conditions
-    from evojax_motion.database import HUMAN, Database
+    from evojax_motion.database import HUMAN, Database, nonfinite_rows
     from evojax_motion.evolution import init_evolved_slots
     from evojax_motion.timegrid import make_time_grid
     from evojax_motion.workflow import build_demonstrations
 
     t0 = time.perf_counter()
     humans, meta, _ = build_demonstrations(cfg, progress=progress)
+    check_samples(cfg, humans.q.shape[1])
     keep = np.asarray(humans.valid) & (np.asarray(humans.origin) == HUMAN)
     humans = Database(*(np.asarray(a)[keep] for a in humans))
     grid = make_time_grid(humans.q.shape[1])
     humans = humans._replace(cost=_human_costs(dyn, grid, humans))
+    bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
+    for i in bad:
+        _log(f"warning: demonstration {i}: NaN/inf in its trajectory, condition or cost; not used")
+    if bad.size == humans.valid.size:
+        raise UserError("demonstrations: expected at least one finite demonstration, got none")
+    humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
     t1 = time.perf_counter()
     key = jax.random.fold_in(jax.random.key(cfg.seed), CONDITIONS_STREAM)
     conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key)
@@ -306,11 +351,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
     t_start = time.perf_counter()
     evo, tr = cfg.evolution, cfg.train
-    if tr.plot_condition is not None and tr.plot_condition >= evo.conditions:
-        raise UserError(
-            f"train.plot_condition: expected < evolution.conditions ({evo.conditions}), "
-            f"got {tr.plot_condition}"
-        )
+    check_settings(cfg)
     resume = check_run_dir(out, config_to_dict(cfg), resume)
     robot, dyn = make_robot_dynamics(cfg)
 
@@ -329,6 +370,8 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         start, metrics = 0, []
 
     out.mkdir(parents=True, exist_ok=True)
+    for leftover in _temporaries(out):  # of a run killed in the middle of a write
+        leftover.unlink(missing_ok=True)
     ck.atomic_write_text(out / CONFIG_FILE, config_to_yaml(cfg))
     ck.atomic_write_text(out / ROBOT_FILE, robot.mjcf)
     if manager is None:
