@@ -9,7 +9,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -264,59 +263,134 @@ def test_stored_costs_match_mujoco(tiny_run):
     assert checked == db.valid.sum() > cfg.demos.count  # humans and evolved slots alike
 
 
-_DRIVER = """
-import sys, time
-from evojax_motion import checkpoint as ck
+# Runs `evojax-motion` and SIGKILLs itself at one of the run's file-system operations (the
+# moments at which what is on disk changes): argv = index, before|after, count file, CLI args.
+# Index -1: no kill; the number of operations is written to the count file at the end.
+_KILL_DRIVER = """
+import os, shutil, signal, sys
+
+index, when, count_file = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+cache = os.environ["JAX_COMPILATION_CACHE_DIR"]  # XLA's cache files are not the run's
+seen = 0
+
+
+def hook(real):
+    def op(*args, **kwargs):
+        global seen
+        if args and str(args[0]).startswith(cache):
+            return real(*args, **kwargs)
+        mine, seen = seen, seen + 1  # numbered on entry (os.makedirs calls os.mkdir)
+        if mine == index and when == "before":
+            os.kill(os.getpid(), signal.SIGKILL)
+        try:
+            return real(*args, **kwargs)
+        finally:  # also after one that failed (mkdir of an existing folder)
+            if mine == index and when == "after":
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    return op
+
+
+for name in ("replace", "rename", "fsync", "mkdir", "makedirs", "unlink", "remove", "rmdir"):
+    setattr(os, name, hook(getattr(os, name)))
+shutil.rmtree = hook(shutil.rmtree)
+
 from evojax_motion.cli import main
 
-_save = ck.save_checkpoint
-
-def save_then_wait(manager, step, state, meta):
-    _save(manager, step, state, meta)
-    if step >= 1:
-        time.sleep(float(sys.argv[1]))  # a window in which the test kills the run
-
-ck.save_checkpoint = save_then_wait
-sys.exit(main(sys.argv[2:]))
+status = main(sys.argv[4:])
+with open(count_file, "w") as f:
+    f.write(str(seen))
+sys.exit(status)
 """
+N_KILLS = 20
+
+
+def _check_visible_files(out: Path) -> None:
+    """What a killed run leaves is complete: every file it shows reads back (atomic writes)."""
+    import yaml
+
+    from evojax_motion.database import load_database
+
+    if (out / "config.yaml").exists():
+        assert isinstance(yaml.safe_load((out / "config.yaml").read_text()), dict)
+    if (out / "metrics.jsonl").exists():
+        _metrics(out)
+    for name in ("db_initial.npz", "db_gen1.npz", "db_final.npz"):
+        if (out / name).exists():
+            load_database(out / name)
+
+
+KILL_ARGS = ["train", str(TINY), "--quiet", "--set", "train.plots=false"]
+
+
+def _launch(driver: Path, out: Path, index: int, when: str, cache: Path):
+    """`_KILL_DRIVER` on ``KILL_ARGS --out out``: ``(CompletedProcess, count file)``."""
+    count = out.with_name(f"{out.name}.count")
+    cmd = [sys.executable, str(driver), str(index), when, str(count), *KILL_ARGS, "--out", str(out)]
+    env = _env_with_cache(cache)
+    return subprocess.run(cmd, env=env, capture_output=True, timeout=600), count
+
+
+def _assert_same_run(ref_out: Path, out: Path) -> None:
+    """Final databases equal bit for bit; metrics equal apart from the wall-clock seconds."""
+    ref, got = _db(ref_out / "db_final.npz"), _db(out / "db_final.npz")
+    for key in DB_KEYS:
+        assert getattr(ref, key).tobytes() == getattr(got, key).tobytes(), (out, key)
+
+    def rows(folder):
+        return [{k: v for k, v in r.items() if k != "seconds"} for r in _metrics(folder)]
+
+    assert rows(out) == rows(ref_out), out
+
+
+@pytest.fixture(scope="module")
+def kill_driver(tmp_path_factory, jax_cache):
+    """``(driver path, number of file-system operations of an uninterrupted run, its folder)``:
+    configs/tiny.yaml run to the end in another process by `_KILL_DRIVER` (no kill)."""
+    folder = tmp_path_factory.mktemp("kills")
+    driver = folder / "driver.py"
+    driver.write_text(_KILL_DRIVER)
+    proc, count = _launch(driver, folder / "whole", -1, "none", jax_cache)
+    assert proc.returncode == 0, proc.stderr.decode()[-3000:]
+    return driver, int(count.read_text()), folder / "whole"
 
 
 @pytest.mark.slow
-def test_sigkill_then_resume_is_bit_identical(tiny_run, tmp_path, jax_cache):
-    from evojax_motion.config import load_config
-    from evojax_motion.train import run_training
+def test_same_config_and_seed_give_a_bit_identical_database(tiny_run, kill_driver):
+    """Determinism on one device (CPU): the same config and seed, run in another process, give
+    the same final database bit for bit and the same metrics."""
+    _assert_same_run(tiny_run[0], kill_driver[2])
 
-    ref_out, _, cfg = tiny_run
-    out = tmp_path / "killed"
-    driver = tmp_path / "driver.py"
-    driver.write_text(_DRIVER)
-    cmd = [sys.executable, str(driver), "30", "train", str(TINY), "--out", str(out), "--quiet"]
-    proc = subprocess.Popen(
-        cmd, env=_env_with_cache(jax_cache), stdout=subprocess.PIPE, stderr=subprocess.PIPE
-    )
-    try:
-        deadline = time.monotonic() + 400
-        while not (out / "checkpoints" / "1").is_dir():
-            assert proc.poll() is None, proc.communicate()[1].decode()[-2000:]
-            assert time.monotonic() < deadline, "no checkpoint 1 within the deadline"
-            time.sleep(0.05)
-        time.sleep(0.5)
-    finally:
-        proc.kill()  # SIGKILL: no cleanup handlers run
-        proc.wait()
-    assert proc.returncode == -9
-    assert not (out / "db_final.npz").exists()
-    assert len(_metrics(out)) <= 1
 
-    summary = run_training(load_config(TINY), out, resume=True, progress=False)
-    assert summary["resumed_from"] == 1 and summary["checkpoint_problems"] == []
-    ref, got = _db(ref_out / "db_final.npz"), _db(out / "db_final.npz")
-    for key in DB_KEYS:
-        assert getattr(ref, key).tobytes() == getattr(got, key).tobytes(), key
-    # metrics rewritten consistently: the same rows, apart from the wall-clock seconds
-    strip = [{k: v for k, v in r.items() if k != "seconds"} for r in _metrics(out)]
-    assert strip == [{k: v for k, v in r.items() if k != "seconds"} for r in _metrics(ref_out)]
-    assert len(strip) == cfg.evolution.generations
+@pytest.mark.slow
+def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(
+    tiny_run, kill_driver, tmp_path, jax_cache
+):
+    """20 runs of configs/tiny.yaml, each SIGKILLed at a seeded random moment (one in each
+    twentieth of the run's file-system operations, just before or just after it), then resumed
+    (or restarted, when the kill came before the run folder held a config): every resume
+    completes without meeting a damaged checkpoint, and its final database and metrics equal
+    the uninterrupted run's, bit for bit."""
+    from evojax_motion.cli import main
+
+    driver, n_ops, _ = kill_driver
+    assert n_ops > 4 * N_KILLS, n_ops
+    rng = np.random.default_rng(20)
+    kills = [
+        (int(rng.integers(n_ops * i // N_KILLS, n_ops * (i + 1) // N_KILLS)), str(when))
+        for i, when in enumerate(rng.choice(["before", "after"], N_KILLS))
+    ]
+    for k, (index, when) in enumerate(kills):
+        out = tmp_path / f"killed{k}"
+        proc, _ = _launch(driver, out, index, when, jax_cache)
+        assert proc.returncode == -9, (index, when, proc.stderr.decode()[-3000:])
+        _check_visible_files(out)
+        resume = ["--resume"] if (out / "config.yaml").is_file() else []
+        assert main([*KILL_ARGS, "--out", str(out), *resume]) == 0, (index, when)
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["checkpoint_problems"] == [], (index, when, summary)
+        _assert_same_run(tiny_run[0], out)
+        assert not list(out.rglob(".*.tmp")), (index, when)
 
 
 @pytest.mark.slow
