@@ -189,13 +189,14 @@ def baseline(cfg, robot, dyn, db, conds, n: int, workers: int) -> dict:
     return out
 
 
-def first_generation_times(config: str, conditions: int) -> dict:
+def first_generation_times(config: str, conditions: int, overrides: list[str]) -> dict:
     """Fresh processes: time to the first generation, cold and with a warm persistent cache."""
     with tempfile.TemporaryDirectory() as cache:
         out = {}
         for label in ("cold", "warm_cache"):
             cmd = [sys.executable, __file__, "--config", config, "--first-generation-only",
                    "--cache-dir", cache, "--conditions", str(conditions)]  # fmt: skip
+            cmd += [f"--set={o}" for o in overrides]
             t0 = time.perf_counter()
             res = subprocess.run(cmd, capture_output=True, text=True, check=True)
             wall = time.perf_counter() - t0
@@ -210,7 +211,7 @@ def _first_generation_only(args) -> None:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     t0 = time.perf_counter()
-    cfg, robot, dyn, db, conds = build(load_config(args.config), args.conditions)
+    cfg, robot, dyn, db, conds = build(load_config(args.config, args.set), args.conditions)
     t1 = time.perf_counter()
     res = time_generations(cfg, robot, dyn, db, conds, 1)
     print(json.dumps({
@@ -270,6 +271,13 @@ def main(argv=None) -> None:
     p.add_argument("--no-first-generation", action="store_true")
     p.add_argument("--first-generation-only", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--cache-dir", default="", help=argparse.SUPPRESS)
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. compiler.method=bfgs (repeatable)",
+    )
     p.add_argument("--tag", default="", help="suffix of the JSON name (default: platform)")
     p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args(argv)
@@ -277,8 +285,9 @@ def main(argv=None) -> None:
         _first_generation_only(args)
         return
 
-    cfg = load_config(args.config)
-    result = {"machine": machine_info(), "config": args.config, "sweep": []}
+    cfg = load_config(args.config, args.set)
+    result = {"machine": machine_info(), "config": args.config, "overrides": args.set,
+              "sweep": []}  # fmt: skip
     counts = [int(x) for x in args.sweep_conditions.split(",") if x] or [args.conditions]
     paper = None
     for c in counts:
@@ -313,7 +322,7 @@ def main(argv=None) -> None:
         result["baseline_ratios"] = ratios
         print(json.dumps(ratios))
     if not args.no_first_generation:
-        result["first_generation"] = first_generation_times(args.config, args.conditions)
+        result["first_generation"] = first_generation_times(args.config, args.conditions, args.set)
     tag = args.tag or result["machine"]["platform"]
     out = Path(args.out_dir) / f"generations_per_sec_{tag}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -41,6 +41,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 # Optimiser variants compared (name -> OptimSettings overrides); the default is "newton".
 VARIANTS = {
     "newton": {},
+    # configs/catch_ball.yaml: eq. 5 integrated on every 4th sample, 2 free directions per joint
+    "newton-s4f2": {"search_stride": 4, "max_free_per_joint": 2},
     "newton-2starts": {"n_starts": 2},
     "newton-4starts": {"n_starts": 4},
     "newton-h2": {"hessian_every": 2, "max_iters": 30},

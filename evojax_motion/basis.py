@@ -156,6 +156,11 @@ def condition_distance(
     return d
 
 
+# Targets whose distances to the whole database are held at once (``lax.map`` blocks): the (C, N)
+# distance matrix of 1e5 conditions against a database of 1e5 entries would take 40 GB.
+NEIGHBOUR_BLOCK = 2048
+
+
 def select_neighbours(
     condition: jnp.ndarray,
     valid: jnp.ndarray,
@@ -173,20 +178,35 @@ def select_neighbours(
     orientations ``rotation: (N, 3, 3)``, ``target_rotation: (C, 3, 3)`` weighted by ``w_rot``.
     ``k`` and the weights are static; ``radius`` [m, or distance units when ``w_pos != 1``] only
     decides ``n_inside``/``short``. Pure and jittable; a NaN target gets an all-False mask.
+    More than `NEIGHBOUR_BLOCK` targets are searched in blocks of that many (memory
+    ``NEIGHBOUR_BLOCK x N``, not ``C x N``).
     """
     n = condition.shape[0]
-    d = condition_distance(condition, targets, w_pos, rotation, target_rotation, w_rot)
-    usable = valid[None, :] & jnp.isfinite(d)
-    d = jnp.where(usable, d, jnp.inf)
     k_eff = min(k, n)  # a database smaller than k: the surplus slots are padding
-    neg, index = jax.lax.top_k(-d, k_eff)
-    dist = -neg
+    use_rot = rotation is not None and target_rotation is not None and w_rot > 0
+
+    def one(xs):
+        tgt, tgt_rot = xs  # (3,), (3, 3) or None
+        d = condition_distance(
+            condition, tgt[None], w_pos, rotation, None if tgt_rot is None else tgt_rot[None],
+            w_rot,
+        )[0]  # fmt: skip
+        usable = valid & jnp.isfinite(d)
+        d = jnp.where(usable, d, jnp.inf)
+        neg, index = jax.lax.top_k(-d, k_eff)
+        n_inside = jnp.sum(usable & (d <= radius)).astype(jnp.int32)
+        return -neg, index, n_inside
+
+    xs = (targets, target_rotation if use_rot else None)
+    if targets.shape[0] > NEIGHBOUR_BLOCK:
+        dist, index, n_inside = jax.lax.map(one, xs, batch_size=NEIGHBOUR_BLOCK)
+    else:
+        dist, index, n_inside = jax.vmap(one)(xs)
     if k_eff < k:
         pad = k - k_eff
         dist = jnp.concatenate([dist, jnp.full((dist.shape[0], pad), jnp.inf, dist.dtype)], 1)
         index = jnp.concatenate([index, jnp.zeros((index.shape[0], pad), index.dtype)], 1)
     mask = jnp.isfinite(dist)
-    n_inside = jnp.sum(usable & (d <= radius), axis=1).astype(jnp.int32)
     return Neighbours(
         index=index.astype(jnp.int32),
         mask=mask,
@@ -235,12 +255,37 @@ def _round_robin(n: int) -> list[np.ndarray]:
     return perms
 
 
+def _pair_rotation(app, aqq, apq):
+    """Cosines and sines ``(c, s)`` of the Jacobi rotations that zero ``apq`` in the symmetric 2x2
+    blocks ``[[app, apq], [apq, aqq]]`` (Numerical Recipes' stable angle; no rotation where
+    ``apq == 0``). All arguments ``(h,)``."""
+    one = jnp.ones((), app.dtype)
+    nz = apq != 0
+    theta = (aqq - app) / jnp.where(nz, 2.0 * apq, one)
+    t = jnp.where(theta >= 0, one, -one) / (jnp.abs(theta) + jnp.hypot(theta, one))
+    t = jnp.where(nz, t, 0.0)
+    c = jax.lax.rsqrt(t * t + 1.0)
+    return c, t * c
+
+
+def _rotate_pairs(x, c, s):
+    """Columns ``(2i, 2i + 1)`` of ``x (r, m)`` rotated by ``(c_i, s_i)``: ``x J``."""
+    r, m = x.shape
+    x = x.reshape(r, m // 2, 2)
+    x0, x1 = x[..., 0], x[..., 1]
+    return jnp.stack([c * x0 - s * x1, s * x0 + c * x1], axis=-1).reshape(r, m)
+
+
+def _default_sweeps(n: int) -> int:
+    return JACOBI_SWEEPS_SMALL if n <= 6 else JACOBI_SWEEPS
+
+
 def jacobi_eigh(a: jnp.ndarray, sweeps: int | None = None):
     """Eigenvalues ``w (n,)`` (unsorted) and eigenvectors ``v (n, n)`` (columns) of a small
     symmetric ``a (n, n)``, ``a = v diag(w) v^T``, by ``sweeps`` sweeps of parallel cyclic Jacobi
     (default `JACOBI_SWEEPS_SMALL` up to n = 6, else `JACOBI_SWEEPS`).
 
-    Each round rotates ``n / 2`` disjoint pairs at once (Numerical Recipes' stable angle) with
+    Each round rotates ``n / 2`` disjoint pairs at once (`_pair_rotation`) with
     elementwise arithmetic on the whole matrix, then permutes it (`_round_robin`): a short program
     (fast to compile) with no solver call per matrix, so under vmap a batch runs as a few fused
     elementwise kernels per round (batched cuSOLVER/LAPACK calls for small matrices cost far more
@@ -250,37 +295,88 @@ def jacobi_eigh(a: jnp.ndarray, sweeps: int | None = None):
     n = a.shape[-1]
     if n > JACOBI_MAX_N:
         return jnp.linalg.eigh(a)
-    if sweeps is None:
-        sweeps = JACOBI_SWEEPS_SMALL if n <= 6 else JACOBI_SWEEPS
     m = n + n % 2
-    h = m // 2
     a = jnp.pad(a, ((0, m - n), (0, m - n)))
-    one = jnp.ones((), a.dtype)
     perms = _round_robin(m)
-
-    def rotate_columns(x, c, s):  # columns (2i, 2i+1) of x (r, m) by the pair rotations
-        x = x.reshape(x.shape[0], h, 2)
-        x0, x1 = x[..., 0], x[..., 1]
-        return jnp.stack([c * x0 - s * x1, s * x0 + c * x1], axis=-1).reshape(-1, m)
 
     def sweep(_, carry):
         x, v = carry
         for perm in perms:
             d = jnp.diagonal(x)
-            app, aqq, apq = d[0::2], d[1::2], jnp.diagonal(x, offset=1)[0::2]
-            nz = apq != 0
-            theta = (aqq - app) / jnp.where(nz, 2.0 * apq, one)
-            t = jnp.where(theta >= 0, one, -one) / (jnp.abs(theta) + jnp.hypot(theta, one))
-            t = jnp.where(nz, t, 0.0)
-            c = jax.lax.rsqrt(t * t + 1.0)
-            s = t * c
-            x = rotate_columns(rotate_columns(x, c, s).T, c, s)  # J^T x J (x symmetric)
-            v = rotate_columns(v, c, s)
+            c, s = _pair_rotation(d[0::2], d[1::2], jnp.diagonal(x, offset=1)[0::2])
+            x = _rotate_pairs(_rotate_pairs(x, c, s).T, c, s)  # J^T x J (x symmetric)
+            v = _rotate_pairs(v, c, s)
             x, v = x[perm][:, perm], v[:, perm]
         return x, v
 
+    sweeps = _default_sweeps(n) if sweeps is None else sweeps
     x, v = jax.lax.fori_loop(0, sweeps, sweep, (a, jnp.eye(m, dtype=a.dtype)))
     return jnp.diagonal(x)[:n], v[:n, :n]
+
+
+def jacobi_svd(a: jnp.ndarray, sweeps: int | None = None):
+    """``(u (m, k), s (k,), vt (n, n))`` of a small ``a (m, n)``, ``k = min(m, n)``, singular
+    values descending, like ``jnp.linalg.svd(a, full_matrices=True)`` for ``vt`` (columns of
+    ``u`` are zero where ``s == 0``), by one-sided (Hestenes) Jacobi.
+
+    The columns of ``a`` are rotated pairwise until they are orthogonal, ``a V = U diag(s)``: each
+    round takes the pairs' norms and dot product from the current columns and rotates them like
+    `jacobi_eigh` rotates a symmetric matrix. No Gram matrix is formed, so small singular values
+    keep the accuracy of a backward-stable SVD (relative to ``s[0]``, not ``sqrt(eps)``), and
+    there is no solver call: under vmap a batch is a few elementwise kernels per round, for
+    accelerators (`small_svd`). ``n`` up to `JACOBI_MAX_N`; an odd ``n`` gets a zero column.
+    """
+    m, n = a.shape
+    if n > JACOBI_MAX_N:
+        raise ValueError(f"jacobi_svd: expected at most {JACOBI_MAX_N} columns, got {n}")
+    n2 = n + n % 2
+    x = jnp.pad(a, ((0, 0), (0, n2 - n)))
+    perms = _round_robin(n2)
+
+    def sweep(_, carry):
+        x, v = carry
+        for perm in perms:
+            pairs = x.reshape(m, n2 // 2, 2)
+            p, q = pairs[..., 0], pairs[..., 1]
+            c, s = _pair_rotation(
+                jnp.sum(p * p, axis=0), jnp.sum(q * q, axis=0), jnp.sum(p * q, axis=0)
+            )
+            x, v = _rotate_pairs(x, c, s)[:, perm], _rotate_pairs(v, c, s)[:, perm]
+        return x, v
+
+    sweeps = _default_sweeps(n) if sweeps is None else sweeps
+    x, v = jax.lax.fori_loop(0, sweeps, sweep, (x, jnp.eye(n2, dtype=a.dtype)))
+    norms = jnp.sqrt(jnp.sum(x * x, axis=0))
+    sv, order = jax.lax.top_k(norms, n2)
+    k = min(m, n)
+    u = x[:, order[:k]] / jnp.where(sv[:k] > 0, sv[:k], 1.0)[None, :]
+    # The padding column stays zero and sorts last among equals; drop its row and column of V.
+    vt = v[:n, order[:n]].T
+    return jnp.where(sv[None, :k] > 0, u, 0.0), sv[:k], vt
+
+
+def small_svd(a: jnp.ndarray, full_matrices: bool = True):
+    """``jnp.linalg.svd`` of a small ``a (m, n)`` on CPU (LAPACK), `jacobi_svd` on accelerators
+    (`jacobi_backend`); ``full_matrices=False`` trims ``vt`` to ``(min(m, n), n)``."""
+    if jacobi_backend() and a.shape[-1] <= JACOBI_MAX_N:
+        u, s, vt = jacobi_svd(a)
+        return u, s, vt if full_matrices else vt[: s.shape[0]]
+    return jnp.linalg.svd(a, full_matrices=full_matrices)
+
+
+def small_eigh(a: jnp.ndarray):
+    """``jnp.linalg.eigh`` (ascending eigenvalues ``(..., n)``, eigenvectors ``(..., n, n)``) of a
+    batch of small symmetric ``a (..., n, n)``: LAPACK/cuSOLVER, or `jacobi_eigh` on
+    accelerators (`jacobi_backend`) up to ``n = JACOBI_MAX_N``."""
+    n = a.shape[-1]
+    if not (jacobi_backend() and n <= JACOBI_MAX_N):
+        return jnp.linalg.eigh(a)
+    batch = a.shape[:-2]
+    w, v = jax.vmap(jacobi_eigh)(a.reshape(-1, n, n))
+    order = jnp.argsort(w, axis=-1)
+    w = jnp.take_along_axis(w, order, axis=-1)
+    v = jnp.take_along_axis(v, order[:, None, :], axis=-1)
+    return w.reshape(*batch, n), v.reshape(*batch, n, n)
 
 
 def jacobi_backend() -> bool:

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.basis import Basis, gram_svd, jacobi_backend
+from evojax_motion.basis import Basis, gram_svd, jacobi_backend, small_svd
 from evojax_motion.errors import UserError
 from evojax_motion.timegrid import TimeGrid
 
@@ -161,12 +161,14 @@ def _svd(a, jacobi: bool):
 
 
 def _pinv(a, rtol, ref, jacobi: bool = False):
-    """``r -> a^+ r`` with singular values below ``rtol * ref`` dropped; also the kept count."""
+    """``r -> a^+ r`` with singular values below ``rtol * ref`` dropped; also the kept count.
+
+    ``jacobi``: by `basis.gram_svd`; else `basis.small_svd` (LAPACK on CPU)."""
     if jacobi:
         u, sv, vt = gram_svd(a)
         vt = vt[: sv.shape[0]]
     else:
-        u, sv, vt = jnp.linalg.svd(a, full_matrices=False)
+        u, sv, vt = small_svd(a, full_matrices=False)
     keep = sv > rtol * ref
     inv = jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0)
     return (lambda r: vt.T @ (inv * (u.T @ r))), jnp.sum(keep).astype(jnp.int32)
@@ -221,10 +223,11 @@ def _joint_system(
         # that are orthonormal in q (|y| = RMS of the q change over the samples), a direction
         # binds when moving q by 1 rad RMS changes its BC by more than `leak`. Which solution
         # among those is a prior one: the minimum norm in prior units, as for interpolation.
-        _, sg, wt = jnp.linalg.svd(funcs.T / jnp.sqrt(jnp.asarray(t, funcs.dtype)), False)
+        # `small_svd`: no solver call per matrix on accelerators (one-sided Jacobi, as accurate).
+        _, sg, wt = small_svd(funcs.T / jnp.sqrt(jnp.asarray(t, funcs.dtype)), False)
         span = sg > STRICT_RANK_RTOL * sg[0]
         to_c = wt.T * jnp.where(span, 1.0 / jnp.where(span, sg, 1.0), 0.0)[None, :]  # c = to_c y
-        u, sq, vt = jnp.linalg.svd(rows @ to_c, full_matrices=True)
+        u, sq, vt = small_svd(rows @ to_c, full_matrices=True)
         binding = sq > leak
         rank = jnp.sum(binding).astype(jnp.int32)
         m = sq.shape[0]

@@ -12,9 +12,12 @@ from evojax_motion.basis import (
     BasisSettings,
     gram_svd,
     jacobi_eigh,
+    jacobi_svd,
     pca_basis,
     rotation_distance,
     select_neighbours,
+    small_eigh,
+    small_svd,
     validate_neighbour_database,
     validate_targets,
 )
@@ -27,6 +30,10 @@ TOL_DIST = 1e-6  # m: distances vs numpy
 TOL_EIG = 2e-6  # relative to the largest |eigenvalue|: float32 Jacobi vs numpy (float64)
 TOL_ORTHO = 3e-6  # Jacobi eigenvectors' deviation from orthonormality (float32)
 TOL_GRAM_SVD = 1e-4  # relative: Gram-based singular values (squared conditioning) vs numpy
+# One-sided Jacobi: every singular value (the smallest of a 1e-4 graded spectrum too) relative to
+# itself vs numpy; a Gram-based SVD misses those by O(1) (eps * cond^2).
+TOL_JACOBI_SVD_REL = 1e-3
+TOL_JACOBI_SVD = 2e-6  # relative to s[0]: singular values and the rebuilt matrix (float32)
 
 N, T, J, K, C = 40, 20, 3, 4, 6
 
@@ -100,6 +107,20 @@ def test_neighbours_with_few_valid_entries_are_masked(data):
     assert 0 not in np.asarray(nb.index)[np.asarray(nb.mask)]
 
 
+def test_blocked_neighbour_search_equals_one_block(data, monkeypatch):
+    """Many targets are searched in `NEIGHBOUR_BLOCK` blocks (memory); the result is the same,
+    a last partial block included."""
+    _, cond, valid, _, targets = data
+    many = np.concatenate([targets] * 3)
+    many[5, 0] = np.nan
+    whole = select_neighbours(jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(many), 5, 0.15)
+    monkeypatch.setattr(basis_module, "NEIGHBOUR_BLOCK", 4)  # len(many) is not a multiple of 4
+    blocks = select_neighbours(jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(many), 5, 0.15)
+    for name in ("index", "mask", "n_inside", "short"):
+        np.testing.assert_array_equal(getattr(whole, name), getattr(blocks, name))
+    np.testing.assert_allclose(whole.distance, blocks.distance, rtol=1e-6)  # vectorised sums
+
+
 def test_orientation_term():
     rots = Rotation.from_euler("z", [[0.0], [0.3], [1.0], [0.0]]).as_matrix().astype(np.float32)
     angle = 0.3
@@ -149,6 +170,53 @@ def test_gram_svd_matches_numpy():
     np.testing.assert_allclose(np.abs(np.sum(vt[:, 4] * vt_ref[:, 4], axis=1)), 1.0, atol=1e-4)
     rebuilt = np.einsum("bik,bk,bkj->bij", np.asarray(u), np.asarray(s), vt[:, :4])
     np.testing.assert_allclose(rebuilt, a, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(4, 5), (100, 5), (30, 3), (6, 6), (3, 7), (50, 1)])
+def test_jacobi_svd_matches_numpy(shape):
+    """One-sided Jacobi vs numpy (float64) on random, rank-deficient and graded matrices."""
+    m, n = shape
+    k = min(m, n)
+    rng = np.random.default_rng(m * n)
+    a = rng.standard_normal((30, m, n))
+    a[:10, :, -1] = a[:10, :, 0]  # a repeated column: rank-deficient
+    # graded: singular values 1 .. 1e-4 (random orthogonal factors)
+    uu = np.linalg.qr(rng.standard_normal((10, m, m)))[0][..., :k]
+    vv = np.linalg.qr(rng.standard_normal((10, n, n)))[0][..., :k]
+    a[10:20] = np.einsum("bik,k,bjk->bij", uu, np.logspace(0, -4, k), vv)
+    a = a.astype(np.float32)
+    u, s, vt = (np.asarray(x, np.float64) for x in jax.jit(jax.vmap(jacobi_svd))(jnp.asarray(a)))
+    s_ref = np.linalg.svd(a.astype(np.float64), compute_uv=False)
+    assert u.shape == (30, m, k) and s.shape == (30, k) and vt.shape == (30, n, n)
+    np.testing.assert_allclose(s / s_ref[:, :1], s_ref / s_ref[:, :1], atol=TOL_JACOBI_SVD)
+    graded = s_ref[10:20] > 0
+    rel = np.abs(s[10:20] - s_ref[10:20])[graded] / s_ref[10:20][graded]
+    assert rel.max() < TOL_JACOBI_SVD_REL
+    assert np.abs(np.einsum("bki,bkj->bij", vt, vt) - np.eye(n)).max() < TOL_ORTHO * n
+    rebuilt = np.einsum("bik,bk,bkj->bij", u, s, vt[:, :k])
+    err = np.abs(rebuilt - a).max(axis=(1, 2)) / s_ref[:, 0]
+    assert err.max() < TOL_JACOBI_SVD * n
+
+
+@pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "jacobi"])
+def test_small_svd_and_eigh_agree_with_numpy(jacobi, monkeypatch):
+    """The dispatchers give numpy's conventions on both paths: descending singular values,
+    ``full_matrices`` shapes, ascending eigenvalues with matching eigenvectors."""
+    monkeypatch.setattr(basis_module, "jacobi_backend", lambda: jacobi)
+    rng = np.random.default_rng(7)
+    a = rng.standard_normal((8, 4, 5)).astype(np.float32)
+    for full in (True, False):
+        u, s, vt = jax.vmap(lambda x, f=full: small_svd(x, f))(jnp.asarray(a))
+        assert vt.shape == ((8, 5, 5) if full else (8, 4, 5))
+        np.testing.assert_allclose(s, np.linalg.svd(a, compute_uv=False), rtol=1e-5)
+        rebuilt = np.einsum("bik,bk,bkj->bij", u, s, np.asarray(vt)[:, :4])
+        np.testing.assert_allclose(rebuilt, a, atol=1e-5)
+    x = rng.standard_normal((3, 2, 7, 9)).astype(np.float32)
+    sym = np.einsum("...it,...jt->...ij", x, x) - 2.0 * np.eye(7, dtype=np.float32)
+    w, v = small_eigh(jnp.asarray(sym))
+    np.testing.assert_allclose(w, np.linalg.eigvalsh(sym.astype(np.float64)), atol=2e-5 * 20)
+    rebuilt = np.einsum("...ik,...k,...jk->...ij", v, w, v)
+    np.testing.assert_allclose(rebuilt, sym, atol=1e-4)
 
 
 @pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "jacobi"])
