@@ -95,7 +95,7 @@ def main(argv=None) -> None:
         ba, bc, grid, k, st.bc_leak, st.max_free_per_joint, st.search_stride),
         basis, bd)  # fmt: skip
     prob = red[0]
-    objective = make_objective(dyn, grid, lo, hi, st.limit_penalty, st.search_stride)
+    objective = make_objective(dyn, lo, hi, st.limit_penalty)
     j, f = prob.mask.shape[1:]
     z0 = jnp.zeros((args.conditions, j * f))
 

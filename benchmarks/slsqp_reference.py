@@ -123,14 +123,13 @@ def solve_reference(
         problems,
     )
     with jax.enable_x64(True):
-        g64 = grid._replace(**{k: np.asarray(v, np.float64) for k, v in grid._asdict().items()})
         lower = robot.lower if lower is None else lower
         upper = robot.upper if upper is None else upper
         lo = np.asarray(lower, np.float64) + settings.limit_margin
         hi = np.asarray(upper, np.float64) - settings.limit_margin
         if gradient == "jax":
             dyn = make_dynamics(robot, "rnea", jnp.float64)
-            objective = make_objective(dyn, g64, lo, hi, 0.0)
+            objective = make_objective(dyn, lo, hi, 0.0)
             value_and_grad = jax.jit(jax.value_and_grad(lambda z, prob: objective(z, prob)[1]))
         else:
             mj_cost = MujocoCost(robot, grid)

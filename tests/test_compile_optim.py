@@ -122,7 +122,7 @@ def test_gradient_in_null_space_matches_finite_differences(setup, x64):
     problems, _, _ = reduced_problems(*f64(take), g64, K, st.bc_leak, st.max_free_per_joint)
     # Tight limits so that the penalty term is active in the gradient too.
     lo, hi = s["lower"] + 0.2, s["upper"] - 0.2
-    objective = make_objective(dyn, g64, lo, hi, 1e3)
+    objective = make_objective(dyn, lo, hi, 1e3)
     rng = np.random.default_rng(1)
     f = jax.jit(lambda z, prob: objective(z, prob)[0])
     grad_f = jax.jit(jax.grad(f))
@@ -206,7 +206,7 @@ def test_search_objective_is_the_quadrature_of_eq5(setup, stride):
     problems, _, _ = reduced_problems(*take, s["grid"], K, max_free=2, stride=stride)
     idx, w = search_nodes(s["grid"], stride)
     assert idx[0] == 0 and idx[-1] == T - 1 and abs(w.sum() - 1) < 1e-6
-    objective = make_objective(s["dyn"], s["grid"], s["lower"], s["upper"], 0.0, stride)
+    objective = make_objective(s["dyn"], s["lower"], s["upper"], 0.0)
     z = jnp.asarray(np.random.default_rng(2).normal(0, 0.1, problems.mask.shape), jnp.float32)
     z = z * problems.mask
     cost = jax.vmap(lambda zz, p: objective(zz, p)[1])(z, problems)
