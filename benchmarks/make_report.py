@@ -153,6 +153,10 @@ def main() -> None:
     lines += markdown_tables(
         "generations_per_sec_*.md", "Generations per second (`benchmarks/generations_per_sec.py`)"
     )
+    lines += markdown_tables(
+        "sharded_generations_*.md",
+        "Generations per second over several GPUs (`benchmarks/sharded_generations.py`)",
+    )
     lines += optimality_section()
     lines += json_summaries(
         "online_latency_*.json",

@@ -99,13 +99,14 @@ def run_point(args) -> None:
         t0 = time.perf_counter()
         compiled = step.lower(db, cond, np.asarray(1, np.int32)).compile()
         out["compile_s"] = time.perf_counter() - t0
-        seconds, costs = [], []
+        seconds, costs, all_stats = [], [], []
         for g in range(1, args.generations + 1):
             t0 = time.perf_counter()
             new, stats = compiled(db, cond, np.asarray(g, np.int32))
             db = Database(*(np.asarray(a) for a in jax.block_until_ready(new)))
             seconds.append(time.perf_counter() - t0)
             costs.append(float(stats.db_cost_mean))
+            all_stats.append({k: float(v) for k, v in stats._asdict().items()})
             if g == 1:  # the same input on every device count: a per-step comparison
                 np.savez(
                     gen1_path(args.result), **{k: np.asarray(v) for k, v in db._asdict().items()}
@@ -117,6 +118,7 @@ def run_point(args) -> None:
             seconds_per_generation=float(np.median(later)),
             generations_per_s=1.0 / float(np.median(later)),
             db_cost_mean=costs,
+            stats=all_stats,
         )
         np.savez(args.result, **{k: np.asarray(v) for k, v in db._asdict().items()})
     except Exception as e:  # out of memory at 100k conditions on one device, say
@@ -156,8 +158,24 @@ def compare(path_a: Path, path_b: Path, n_human: int) -> dict:
         }
 
 
-def child_env() -> dict:
+# The parent builds generation 0 with JAX too. With JAX's defaults it would keep 75 % of every
+# GPU preallocated while the children run (a first run on 2 x H200 ran out of memory at 100,000
+# conditions on one device and failed autotuning on two): the parent allocates on demand and
+# returns freed memory; the children get JAX's defaults back (`child_env`).
+PARENT_ALLOCATION = {
+    "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+    "XLA_PYTHON_CLIENT_ALLOCATOR": "platform",
+}
+
+
+def child_env(user: dict) -> dict:
+    """The children's environment: ``user`` = the parent's allocation variables as it found them."""
     env = dict(os.environ)
+    for key, value in user.items():
+        if value is None:
+            env.pop(key, None)
+        else:
+            env[key] = value
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     # JAX preallocates 75 % of each GPU; give the step what the card has (one process per run)
     env.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.95")
@@ -177,16 +195,16 @@ def markdown(result: dict) -> str:
         + f". Command: `{m['command']}`",
         "",
         "| conditions | devices | compile s | s / generation | generations / s | speed-up | "
-        "efficiency | peak GiB / device | gen 1: q bit-identical | gen 1: max abs dq [rad] | "
-        "last gen: max abs dq [rad] |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "efficiency | peak GiB / device | last gen: db cost mean | gen 1: q bit-identical | "
+        "gen 1: max abs dq [rad] | last gen: max abs dq [rad] |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in result["points"]:
         peak_bytes = max(r.get("peak_memory_bytes") or [-1])
         peak = f"{peak_bytes / GIB:.1f}" if peak_bytes >= 0 else "-"  # CPU: no allocator stats
         if "error" in r:
             lines.append(
-                f"| {r['conditions']} | {r['devices']} | - | - | - | - | - | {peak} | "
+                f"| {r['conditions']} | {r['devices']} | - | - | - | - | - | {peak} | - | "
                 f"{r['error'][:60]} | - | - |"
             )
             continue
@@ -197,7 +215,8 @@ def markdown(result: dict) -> str:
             f"| {r['conditions']} | {r['devices']} | {r['compile_s']:.1f} | "
             f"{r['seconds_per_generation']:.4g} | {r['generations_per_s']:.3g} | "
             f"{r.get('speedup', float('nan')):.2f} | {r.get('efficiency', float('nan')):.2f} | "
-            f"{peak} | {'-' if bit is None else f'{100 * bit:.1f} %'} | "
+            f"{peak} | {r['db_cost_mean'][-1]:.4f} | "
+            f"{'-' if bit is None else f'{100 * bit:.1f} %'} | "
             f"{cmp.get('q_max_abs_diff', float('nan')):.2g} | "
             f"{last.get('q_max_abs_diff', float('nan')):.2g} |"
         )
@@ -220,6 +239,10 @@ def main(argv=None) -> None:
         args.devices = int(args.devices)
         run_point(args)
         return
+    user = {key: os.environ.get(key) for key in PARENT_ALLOCATION}
+    os.environ.update(PARENT_ALLOCATION)
+
+    import gc
 
     import jax
     from generations_per_sec import build, machine_info
@@ -247,6 +270,8 @@ def main(argv=None) -> None:
             n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
             state = Path(tmp) / f"state_{m}.npz"
             save_state(state, db, cond, n_human)
+            del db, cond  # free the parent's device memory before the children run
+            gc.collect()
             print(f"conditions {m}: generation 0 built in {time.perf_counter() - t0:.1f} s")
             base = None
             for n in counts:
@@ -256,7 +281,7 @@ def main(argv=None) -> None:
                        "--result", str(res_path)]  # fmt: skip
                 for s in args.set:
                     cmd += ["--set", s]
-                proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env())
+                proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(user))
                 lines = proc.stdout.strip().splitlines()
                 if proc.returncode != 0 or not lines:
                     err = f"exit {proc.returncode}: {proc.stderr.strip()[-300:]}"

@@ -43,12 +43,12 @@ from evojax_motion.online import (
     OnlineResult,
     OnlineSettings,
     build_problem,
-    exact_matmuls,
     finish_motion,
     joint_limits_f32,
     reach_query,
     resolve_settings,
 )
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import TimeGrid
 

@@ -81,6 +81,7 @@ from evojax_motion.compile_interp import (
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.objective import torque_cost
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.timegrid import TimeGrid, derivatives
 
 METHODS = ("newton", "bfgs", "adam", "lbfgs")
@@ -708,6 +709,7 @@ def make_optimisation_compiler(
     validate_limits(lower, upper, lower.shape[0] if lower.ndim == 1 else -1)
 
     @jax.jit
+    @exact_matmuls
     def compile_batch(basis: Basis, boundary: Boundary) -> Optimised:
         return compile_optimisation(basis, boundary, dyn, grid, lower, upper, settings)
 

@@ -32,6 +32,7 @@ from evojax_motion.database import HUMAN, Database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.ik import solve_ik
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import TimeGrid
 
@@ -111,6 +112,7 @@ def make_conditions(
     lower, upper = jnp.asarray(robot.lower, q.dtype), jnp.asarray(robot.upper, q.dtype)
 
     @jax.jit  # two jitted stages around the data-dependent choice (eager PCA is ~100x slower)
+    @exact_matmuls
     def candidates(key, condition):
         cand = jax.random.uniform(key, (n_cand, 3), q.dtype, lo, hi)
         nb = select_neighbours(condition, human, cand, basis.neighbours, basis.radius, basis.w_pos)
@@ -119,6 +121,7 @@ def make_conditions(
         return cand, nb, ik
 
     @jax.jit
+    @exact_matmuls
     def finish(target, nb, qf, ik_error):
         j = q.shape[-1]
         if settings.duration is None:

@@ -54,6 +54,7 @@ from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.ik import solve_ik_trajectory
 from evojax_motion.objective import torque_cost
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import derivatives, make_time_grid
 
@@ -483,6 +484,7 @@ class _Robot(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnames=("dyn", "samples", "ik_iters"))
+@exact_matmuls
 def _simulate(
     dyn: Dynamics, samples: int, ik_iters: int, key, target, prm: _Params, rob: _Robot
 ) -> _Trials:

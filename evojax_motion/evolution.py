@@ -26,6 +26,7 @@ from evojax_motion.database import EVOLVED, Database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import check_setting
 from evojax_motion.objective import torque_sum, trajectory_torques
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.timegrid import TimeGrid, derivatives
 
 
@@ -290,4 +291,4 @@ def make_generation_step(
         )
         return new_db, stats
 
-    return jax.jit(step)
+    return jax.jit(exact_matmuls(step))

@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from evojax_motion.dynamics import Dynamics
+from evojax_motion.precision import exact_matmuls
 
 DEFAULT_TOL = 1e-4  # [m] a solution "converged" when the hand is this close to its target
 NULL_SPACE_MU = 1e-6  # [m^2] tiny regulariser of the null-space projector (keeps it a projector)
@@ -157,6 +158,7 @@ def _broadcast(x, dtype, shape):
 
 
 @functools.partial(jax.jit, static_argnames=("dyn", "iters", "damping", "max_step", "tol"))
+@exact_matmuls
 def solve_ik(
     dyn: Dynamics,
     targets,
@@ -204,6 +206,7 @@ def solve_ik(
 
 
 @functools.partial(jax.jit, static_argnames=("dyn", "iters", "damping", "max_step", "tol"))
+@exact_matmuls
 def solve_ik_trajectory(
     dyn: Dynamics,
     hand_path,

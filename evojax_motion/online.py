@@ -63,6 +63,7 @@ from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError, check_setting
 from evojax_motion.ik import solve_ik
 from evojax_motion.objective import cost_from_torques
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import TimeGrid, derivatives
 
@@ -489,21 +490,6 @@ def resolve_settings(basis_settings, settings):
             f"got {settings.min_neighbours}"
         )
     return basis_settings, settings
-
-
-def exact_matmuls(fn: Callable) -> Callable:
-    """``fn`` traced with float32 matrix products at full precision.
-
-    On GPUs, float32 products default to TF32 (10-bit mantissa): the trajectory sums and the
-    time-derivative operators would err by ~1e-3 rad, amplified into accelerations and torques.
-    """
-
-    @functools.wraps(fn)
-    def wrapped(*args, **kwargs):
-        with jax.default_matmul_precision("highest"):
-            return fn(*args, **kwargs)
-
-    return wrapped
 
 
 def joint_limits_f32(robot: Robot):

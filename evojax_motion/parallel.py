@@ -60,6 +60,7 @@ from jax.sharding import PartitionSpec as P
 from evojax_motion.database import Database
 from evojax_motion.errors import UserError
 from evojax_motion.evolution import GenerationStats, make_generation_step
+from evojax_motion.precision import exact_matmuls
 
 CONDITION_AXIS = "conditions"
 
@@ -297,7 +298,7 @@ def make_sharded_generation_step(
         new_db = db._replace(**written)
         return new_db, unpad_stats(stats, m, m_pad - m)
 
-    return jax.jit(step, in_shardings=replicated, out_shardings=replicated)
+    return jax.jit(exact_matmuls(step), in_shardings=replicated, out_shardings=replicated)
 
 
 def initialize_distributed(

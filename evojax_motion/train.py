@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from evojax_motion.errors import UserError
+from evojax_motion.precision import exact_matmuls
 
 if TYPE_CHECKING:
     from evojax_motion.config import Config
@@ -213,7 +214,9 @@ def _human_costs(dyn, grid, humans):
 
     from evojax_motion.objective import torque_cost
 
-    cost = jax.jit(jax.vmap(lambda q, d: torque_cost(dyn, grid, q, d)))(humans.q, humans.duration)
+    cost = jax.jit(exact_matmuls(jax.vmap(lambda q, d: torque_cost(dyn, grid, q, d))))(
+        humans.q, humans.duration
+    )
     return np.asarray(cost, np.float32)
 
 
@@ -229,7 +232,9 @@ def human_only_baseline(dyn, grid, conditions) -> dict:
         tau = trajectory_torques(dyn, grid, q, d)
         return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
 
-    cost, tsum = jax.jit(jax.vmap(one))(conditions.human_q, conditions.boundary.duration)
+    cost, tsum = jax.jit(exact_matmuls(jax.vmap(one)))(
+        conditions.human_q, conditions.boundary.duration
+    )
     return {
         "human_only_cost_mean": _json_value(np.mean(np.asarray(cost, np.float64))),
         "human_only_torque_sum_mean": _json_value(np.mean(np.asarray(tsum, np.float64))),

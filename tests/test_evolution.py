@@ -311,3 +311,44 @@ def test_generation_step_rejects_selects_and_keeps_humans(small):
     np.testing.assert_allclose(float(s2.human_deviation_deg), dev.mean(), rtol=1e-5)
     gen = np.asarray(db2.generation[n:])
     assert set(gen[v2]) <= {1, 2} and (gen[~v2] == 0).all()
+
+
+def _dot_precisions(jaxpr) -> list:
+    """The ``precision`` of every ``dot_general`` in ``jaxpr`` and its sub-programs."""
+    import jax.extend
+
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "dot_general":
+            found.append(eqn.params["precision"])
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            found += _dot_precisions(sub)
+    return found
+
+
+def test_generation_step_traces_exact_float32_products(small):
+    """Every matrix product of a generation (plain and sharded step) is traced at HIGHEST
+    precision, whatever the caller's default: GPUs would run DEFAULT ones in TF32, which
+    rejected 99 % of the offspring for joint limits on an H200 (`precision`)."""
+    import jax
+
+    from evojax_motion.compile_optim import OptimSettings
+    from evojax_motion.evolution import make_generation_step
+    from evojax_motion.parallel import make_sharded_generation_step
+
+    robot, s = small["robot"], small
+    db0 = init_evolved_slots(s["humans"], s["cond"])
+    args = (s["dyn"], s["grid"], robot.lower, robot.upper, N_HUMAN, s["basis"])
+    optim = OptimSettings(method="newton", max_iters=2, search_stride=2, max_free_per_joint=2)
+    steps = {
+        "plain": s["step"],
+        "newton": make_generation_step(*args, optim, s["evo"]),
+        "sharded": make_sharded_generation_step(*args, optim, s["evo"], devices=1),
+    }
+    highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
+    with jax.default_matmul_precision("default"):
+        for name, step in steps.items():
+            found = _dot_precisions(jax.make_jaxpr(step)(db0, s["cond"], np.int32(1)).jaxpr)
+            assert len(found) > 10, name  # the walk reaches the optimiser's products
+            loose = [p for p in found if p != highest]
+            assert not loose, f"{name}: {len(loose)} of {len(found)} products at {loose[0]}"

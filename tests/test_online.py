@@ -69,7 +69,8 @@ def test_accelerator_path_matches_lapack(env, near, monkeypatch):
     with the projection on (limits narrowed so that every motion needs it) and off."""
     import evojax_motion.basis as basis_module
     import evojax_motion.compile_interp as interp_module
-    from evojax_motion.online import exact_matmuls, joint_limits_f32, online_query, to_numpy
+    from evojax_motion.online import joint_limits_f32, online_query, to_numpy
+    from evojax_motion.precision import exact_matmuls
 
     targets, _ = near
     lower, upper = joint_limits_f32(env.robot)
