@@ -175,6 +175,16 @@ def main() -> None:
             "hand_error_m",
         ],
     )
+    lines += json_summaries(
+        "profile_online_*.json",
+        "Where an online batch's time goes (`benchmarks/profile_online.py`)",
+        ["batch", "stages"],
+    )
+    lines += json_summaries(
+        "small_eigh_*.json",
+        "Batched small eigen-decompositions (`benchmarks/small_eigh.py`)",
+        ["batch", "k", "T", "stages", "sv_max_rel_diff"],
+    )
     lines += dynamics_section()
     lines += import_section()
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines).rstrip() + "\n")

@@ -50,13 +50,13 @@ from evojax_motion.database import (  # noqa: E402
     save_database,
 )
 from evojax_motion.online import (  # noqa: E402
-    exact_matmuls,
     joint_limits_f32,
     load_online_model,
     make_online_generator,
     online_database,
     online_query,
 )
+from evojax_motion.precision import exact_matmuls  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 DEFAULT_DB = ROOT / "runs" / "online_latency_db.npz"

@@ -20,9 +20,10 @@ position only.
 `pca_basis` runs, per condition and per joint, a PCA of the masked neighbours' trajectories
 (the paper's Fig. 4): the masked mean ``(T,)`` and the leading right singular vectors of the centred
 ``(k, T)`` matrix (masked rows zero) as unit-norm components, with their variances. On CPU by
-LAPACK's SVD; on accelerators (`jacobi_backend`) through the ``k x k`` Gram matrix and an
-elementwise parallel Jacobi eigensolver (`jacobi_eigh`), in two passes that keep the SVD's
-accuracy: a batched SVD call per small matrix made the online query ~260 targets/s on an H100.
+LAPACK's SVD; on accelerators (`jacobi_backend`) through the ``k x k`` Gram matrix and one
+batched symmetric eigensolver call, in two passes that keep the SVD's accuracy
+(`_pca_rows_gram`): a batched SVD is one solver call per small matrix, which made the online
+query ~260 targets/s on an H100.
 
 Example (a batch of C target hand positions)::
 
@@ -156,9 +157,12 @@ def condition_distance(
     return d
 
 
-# Targets whose distances to the whole database are held at once (``lax.map`` blocks): the (C, N)
-# distance matrix of 1e5 conditions against a database of 1e5 entries would take 40 GB.
-NEIGHBOUR_BLOCK = 2048
+# Distances held at once by the neighbour search (1 GiB in float32): the (C, N) distance matrix
+# of 1e5 conditions against a database of 1e5 entries would take 40 GB, so the targets are
+# searched in ``lax.map`` blocks of ``NEIGHBOUR_BLOCK_ENTRIES // N`` (2,676 at N = 100,311). A
+# small database (online queries: N = 611) is searched in one block: blocks run one after the
+# other, each far too small to fill a GPU.
+NEIGHBOUR_BLOCK_ENTRIES = 2**28
 
 
 def select_neighbours(
@@ -178,8 +182,8 @@ def select_neighbours(
     orientations ``rotation: (N, 3, 3)``, ``target_rotation: (C, 3, 3)`` weighted by ``w_rot``.
     ``k`` and the weights are static; ``radius`` [m, or distance units when ``w_pos != 1``] only
     decides ``n_inside``/``short``. Pure and jittable; a NaN target gets an all-False mask.
-    More than `NEIGHBOUR_BLOCK` targets are searched in blocks of that many (memory
-    ``NEIGHBOUR_BLOCK x N``, not ``C x N``).
+    The targets are searched in blocks of ``NEIGHBOUR_BLOCK_ENTRIES // N`` (memory bounded by
+    `NEIGHBOUR_BLOCK_ENTRIES` distances, not ``C x N``).
     """
     n = condition.shape[0]
     k_eff = min(k, n)  # a database smaller than k: the surplus slots are padding
@@ -198,8 +202,9 @@ def select_neighbours(
         return -neg, index, n_inside
 
     xs = (targets, target_rotation if use_rot else None)
-    if targets.shape[0] > NEIGHBOUR_BLOCK:
-        dist, index, n_inside = jax.lax.map(one, xs, batch_size=NEIGHBOUR_BLOCK)
+    block = max(1, NEIGHBOUR_BLOCK_ENTRIES // max(n, 1))
+    if targets.shape[0] > block:
+        dist, index, n_inside = jax.lax.map(one, xs, batch_size=block)
     else:
         dist, index, n_inside = jax.vmap(one)(xs)
     if k_eff < k:
@@ -223,8 +228,6 @@ JACOBI_MAX_N = 12
 # reach rounding level after 3 sweeps at n <= 5 and 5 at n = 10): up to n = 6, and above.
 JACOBI_SWEEPS_SMALL = 4
 JACOBI_SWEEPS = 6
-# Sweeps of the PCA's refinement pass (a nearly diagonal Gram).
-REFINE_SWEEPS = 2
 
 
 def _dot(a, b):
@@ -417,27 +420,32 @@ def _pca_rows_svd(centred: jnp.ndarray, n_components: int):
     return sv[:avail], vt[:avail]
 
 
-def _pca_rows_jacobi(centred: jnp.ndarray, n_components: int):
+def _pca_rows_gram(centred: jnp.ndarray, n_components: int):
     """As `_pca_rows_svd`, through the ``k x k`` Gram matrix (k ~ 10 rows), in two passes:
-    ``X X^T = U diag(s^2) U^T`` (`jacobi_eigh`) rotates the rows, ``Y = U^T X``; a few sweeps on
-    ``Y Y^T`` (nearly diagonal) rotate again, ``Z = W^T Y``, whose rows are ``s_i v_i``. The second
-    Gram is formed from the rotated rows, so its entries err by rounding relative to ``s_i s_j``
-    rather than to ``s_0^2``: as accurate as a (backward stable) SVD of X, with no ``sqrt(eps)``
-    floor on the small singular values."""
-    _, u = jacobi_eigh(_dot(centred, centred.T))
+    ``X X^T = U diag(s^2) U^T`` rotates the rows, ``Y = U^T X``; the Gram of ``Y`` (nearly
+    diagonal) rotates them again, ``Z = W^T Y``, whose rows are ``s_i v_i``. The second Gram is
+    formed from the rotated rows, so its entries err by rounding relative to ``s_i s_j`` rather
+    than to ``s_0^2``: as accurate as a (backward stable) SVD of X, with no ``sqrt(eps)`` floor
+    on the small singular values.
+
+    For accelerators: under vmap each pass is one batched symmetric eigensolver call (cuSOLVER's
+    batched Jacobi on GPUs). For 700,000 Gram matrices of 10 x 100 trajectories (100,000 online
+    targets) on an H100 this takes 48 ms, the same two passes with `jacobi_eigh` 137 ms
+    (``benchmarks/small_eigh.py``, ``benchmarks/results/small_eigh_gpu.json``)."""
+    _, u = jnp.linalg.eigh(_dot(centred, centred.T))
     y = _dot(u.T, centred)
-    _, w = jacobi_eigh(_dot(y, y.T), REFINE_SWEEPS)
+    _, w = jnp.linalg.eigh(_dot(y, y.T))
     z = _dot(w.T, y)  # (k, T) rows s_i v_i, unordered
     sv, order = jax.lax.top_k(jnp.sqrt(jnp.sum(z * z, axis=1)), min(z.shape[0], n_components))
     return sv, z[order] / jnp.where(sv > 0, sv, 1.0)[:, None]
 
 
-def _joint_pca(x: jnp.ndarray, mask: jnp.ndarray, n_components: int, jacobi: bool):
+def _joint_pca(x: jnp.ndarray, mask: jnp.ndarray, n_components: int, gram: bool):
     """PCA of one joint's neighbour trajectories ``x (k, T)`` with row ``mask (k,)``.
 
     Returns ``mean (T,)``, ``components (K, T)``, ``variance (K,)``: the leading right singular
-    vectors of the centred matrix, and its squared singular values / (count - 1). ``jacobi``:
-    `_pca_rows_jacobi` (accelerators), else `_pca_rows_svd`.
+    vectors of the centred matrix, and its squared singular values / (count - 1). ``gram``:
+    `_pca_rows_gram` (accelerators), else `_pca_rows_svd`.
     """
     w = mask.astype(x.dtype)
     count = jnp.sum(w)
@@ -445,7 +453,7 @@ def _joint_pca(x: jnp.ndarray, mask: jnp.ndarray, n_components: int, jacobi: boo
     mean = jnp.sum(jnp.where(mask[:, None], x, 0.0), axis=0) / jnp.maximum(count, 1.0)
     mean = jnp.where(count > 0, mean, jnp.nan)
     centred = jnp.where(mask[:, None], x - mean, 0.0)
-    sv, vt = (_pca_rows_jacobi if jacobi else _pca_rows_svd)(centred, n_components)
+    sv, vt = (_pca_rows_gram if gram else _pca_rows_svd)(centred, n_components)
     avail = vt.shape[0]
     if avail < n_components:  # fewer rows than requested components: pad with zeros
         vt = jnp.concatenate([vt, jnp.zeros((n_components - avail, vt.shape[1]), vt.dtype)])

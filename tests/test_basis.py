@@ -108,13 +108,14 @@ def test_neighbours_with_few_valid_entries_are_masked(data):
 
 
 def test_blocked_neighbour_search_equals_one_block(data, monkeypatch):
-    """Many targets are searched in `NEIGHBOUR_BLOCK` blocks (memory); the result is the same,
-    a last partial block included."""
+    """Many targets are searched in blocks of `NEIGHBOUR_BLOCK_ENTRIES` // N (memory); the
+    result is the same, a last partial block included."""
     _, cond, valid, _, targets = data
     many = np.concatenate([targets] * 3)
     many[5, 0] = np.nan
     whole = select_neighbours(jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(many), 5, 0.15)
-    monkeypatch.setattr(basis_module, "NEIGHBOUR_BLOCK", 4)  # len(many) is not a multiple of 4
+    # blocks of 4 targets: len(many) is not a multiple of 4
+    monkeypatch.setattr(basis_module, "NEIGHBOUR_BLOCK_ENTRIES", 4 * len(cond) + 1)
     blocks = select_neighbours(jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(many), 5, 0.15)
     for name in ("index", "mask", "n_inside", "short"):
         np.testing.assert_array_equal(getattr(whole, name), getattr(blocks, name))
