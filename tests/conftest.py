@@ -1,11 +1,25 @@
 """Shared test settings: CPU, deterministic, x64 on request."""
 
 import os
+import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# One persistent XLA cache for the whole session: the controller makes it before pytest-xdist
+# starts its workers, which inherit the variable, as do the subprocesses, the notebook kernel and
+# the command-line tools (`online_cli.CACHE_ENV`) the tests start. The same programs (the tiny
+# config's generation step, the online query of the test database) are then compiled once, not
+# once per process. Never the user's own cache: a fresh directory per session.
+if "PYTEST_XDIST_WORKER" not in os.environ and "EVOJAX_TEST_XLA_CACHE" not in os.environ:
+    os.environ["EVOJAX_TEST_XLA_CACHE"] = tempfile.mkdtemp(prefix="evojax-tests-xla-")
+if "EVOJAX_TEST_XLA_CACHE" in os.environ:
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["EVOJAX_TEST_XLA_CACHE"]
+    os.environ["EVOJAX_MOTION_JAX_CACHE"] = os.environ["EVOJAX_TEST_XLA_CACHE"]
 
 import jax
 import pytest
+
+if "EVOJAX_TEST_XLA_CACHE" in os.environ:  # in case a plugin imported jax before this file
+    jax.config.update("jax_compilation_cache_dir", os.environ["EVOJAX_TEST_XLA_CACHE"])
 
 
 @pytest.fixture

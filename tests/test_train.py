@@ -144,15 +144,9 @@ def _env_with_cache(cache: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def jax_cache(tmp_path_factory):
-    """A persistent XLA cache for this module (in-process runs and subprocesses share it)."""
-    import jax
-
-    cache = tmp_path_factory.mktemp("jax_cache")
-    old = jax.config.jax_compilation_cache_dir
-    jax.config.update("jax_compilation_cache_dir", str(cache))
-    yield cache
-    jax.config.update("jax_compilation_cache_dir", old)
+def jax_cache():
+    """The session's persistent XLA cache (conftest): in-process runs and subprocesses share it."""
+    return Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
 
 
 @pytest.fixture(scope="module")
