@@ -1,6 +1,7 @@
 """Shared test settings: CPU, deterministic, x64 on request."""
 
 import os
+import shutil
 import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -9,14 +10,15 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # the command-line tools (`online_cli.CACHE_ENV`) the tests start. The same programs (the tiny
 # config's generation step, the online query of the test database) are then compiled once, not
 # once per process. Never the user's own cache: a fresh directory per session.
-if "PYTEST_XDIST_WORKER" not in os.environ and "EVOJAX_TEST_XLA_CACHE" not in os.environ:
+_OWN_CACHE = "PYTEST_XDIST_WORKER" not in os.environ and "EVOJAX_TEST_XLA_CACHE" not in os.environ
+if _OWN_CACHE:
     os.environ["EVOJAX_TEST_XLA_CACHE"] = tempfile.mkdtemp(prefix="evojax-tests-xla-")
 if "EVOJAX_TEST_XLA_CACHE" in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["EVOJAX_TEST_XLA_CACHE"]
     os.environ["EVOJAX_MOTION_JAX_CACHE"] = os.environ["EVOJAX_TEST_XLA_CACHE"]
 
-import jax
-import pytest
+import jax  # noqa: E402  (after the environment above)
+import pytest  # noqa: E402
 
 if "EVOJAX_TEST_XLA_CACHE" in os.environ:  # in case a plugin imported jax before this file
     jax.config.update("jax_compilation_cache_dir", os.environ["EVOJAX_TEST_XLA_CACHE"])
@@ -27,3 +29,9 @@ def x64():
     """Run the test body with float64 enabled (accuracy checks against C MuJoCo / SciPy)."""
     with jax.enable_x64(True):
         yield
+
+
+def pytest_unconfigure(config):
+    """The session's XLA cache goes with the session (the process that made it removes it)."""
+    if _OWN_CACHE:
+        shutil.rmtree(os.environ["EVOJAX_TEST_XLA_CACHE"], ignore_errors=True)
