@@ -35,8 +35,10 @@ lint: $(VENV)/.installed-dev
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
+# --dist loadscope: a module's tests share one worker, so its module-scoped fixtures (compiled
+# steps, training runs) are built once, not once per worker.
 test: lint
-	$(VENV)/bin/pytest -q -n 2 --durations=15
+	$(VENV)/bin/pytest -q -n 2 --dist loadscope --durations=15
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
