@@ -160,8 +160,8 @@ def compare(path_a: Path, path_b: Path, n_human: int) -> dict:
 
 # The parent builds generation 0 with JAX too. With JAX's defaults it would keep 75 % of every
 # GPU preallocated while the children run (a first run on 2 x H200 ran out of memory at 100,000
-# conditions on one device and failed autotuning on two): the parent allocates on demand and
-# returns freed memory; the children get JAX's defaults back (`child_env`).
+# conditions on one device and failed autotuning at 10,000 on two): the parent allocates on
+# demand and returns freed memory; the children get JAX's defaults back (`child_env`).
 PARENT_ALLOCATION = {
     "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
     "XLA_PYTHON_CLIENT_ALLOCATOR": "platform",
