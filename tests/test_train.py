@@ -137,20 +137,8 @@ TOL_COST_REL = 0.01  # stored eq. 5 costs vs C MuJoCo mj_inverse (float32 JAX vs
 DB_KEYS = ("q", "duration", "condition", "cost", "origin", "valid", "generation")
 
 
-def _env_with_cache(cache: Path) -> dict:
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
-    env["JAX_COMPILATION_CACHE_DIR"] = str(cache)  # the subprocesses reuse the fixture's compiles
-    return env
-
-
 @pytest.fixture(scope="module")
-def jax_cache():
-    """The session's persistent XLA cache (conftest): in-process runs and subprocesses share it."""
-    return Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory, jax_cache):
+def tiny_run(tmp_path_factory):
     """One uninterrupted run of configs/tiny.yaml: ``(out_dir, summary, cfg)``."""
     from evojax_motion.config import load_config
     from evojax_motion.train import run_training
@@ -317,11 +305,12 @@ def _check_visible_files(out: Path) -> None:
 KILL_ARGS = ["train", str(TINY), "--quiet", "--set", "train.plots=false"]
 
 
-def _launch(driver: Path, out: Path, index: int, when: str, cache: Path):
-    """`_KILL_DRIVER` on ``KILL_ARGS --out out``: ``(CompletedProcess, count file)``."""
+def _launch(driver: Path, out: Path, index: int, when: str):
+    """`_KILL_DRIVER` on ``KILL_ARGS --out out``: ``(CompletedProcess, count file)``. The
+    subprocess inherits the session's XLA cache (conftest), so it reuses the fixtures' compiles."""
     count = out.with_name(f"{out.name}.count")
     cmd = [sys.executable, str(driver), str(index), when, str(count), *KILL_ARGS, "--out", str(out)]
-    env = _env_with_cache(cache)
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
     return subprocess.run(cmd, env=env, capture_output=True, timeout=600), count
 
 
@@ -338,13 +327,13 @@ def _assert_same_run(ref_out: Path, out: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def kill_driver(tmp_path_factory, jax_cache):
+def kill_driver(tmp_path_factory):
     """``(driver path, number of file-system operations of an uninterrupted run, its folder)``:
     configs/tiny.yaml run to the end in another process by `_KILL_DRIVER` (no kill)."""
     folder = tmp_path_factory.mktemp("kills")
     driver = folder / "driver.py"
     driver.write_text(_KILL_DRIVER)
-    proc, count = _launch(driver, folder / "whole", -1, "none", jax_cache)
+    proc, count = _launch(driver, folder / "whole", -1, "none")
     assert proc.returncode == 0, proc.stderr.decode()[-3000:]
     return driver, int(count.read_text()), folder / "whole"
 
@@ -357,9 +346,7 @@ def test_same_config_and_seed_give_a_bit_identical_database(tiny_run, kill_drive
 
 
 @pytest.mark.slow
-def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(
-    tiny_run, kill_driver, tmp_path, jax_cache
-):
+def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(tiny_run, kill_driver, tmp_path):
     """20 runs of configs/tiny.yaml, each SIGKILLed at a seeded random moment (one in each
     twentieth of the run's file-system operations, just before or just after it), then resumed
     (or restarted, when the kill came before the run folder held a config): every resume
@@ -376,7 +363,7 @@ def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(
     ]
     for k, (index, when) in enumerate(kills):
         out = tmp_path / f"killed{k}"
-        proc, _ = _launch(driver, out, index, when, jax_cache)
+        proc, _ = _launch(driver, out, index, when)
         assert proc.returncode == -9, (index, when, proc.stderr.decode()[-3000:])
         _check_visible_files(out)
         resume = ["--resume"] if (out / "config.yaml").is_file() else []
