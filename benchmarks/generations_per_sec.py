@@ -152,6 +152,12 @@ def _baseline_worker(payload):
     return time.perf_counter() - t0
 
 
+def _warm_worker(payload, ready):
+    _baseline_worker(payload)
+    with ready.get_lock():
+        ready.value += 1
+
+
 def _slices(tree, parts: int):
     n = jax.tree_util.tree_leaves(tree)[0].shape[0]
     bounds = np.linspace(0, n, parts + 1).astype(int)
@@ -173,12 +179,16 @@ def baseline(cfg, robot, dyn, db, conds, n: int, workers: int) -> dict:
                 cfg.compiler, gradient)  # fmt: skip
         _baseline_worker(warm)
         seq = _baseline_worker((robot, grid, basis, boundary, cfg.compiler, gradient))
-        with ctx.Pool(workers) as pool:
-            pool.map(_baseline_worker, [warm] * workers)  # warm each worker
+        ready = ctx.Value("i", 0)
+        # Every worker warms up in its initializer; the clock starts once all have (a warm-up
+        # by `map` may hand every warm-up task to one worker and time the other one's start).
+        with ctx.Pool(workers, initializer=_warm_worker, initargs=(warm, ready)) as pool:
+            while ready.value < workers:
+                time.sleep(0.05)
             t0 = time.perf_counter()
             parts = [(robot, grid, b, bc, cfg.compiler, gradient)
                      for b, bc in _slices((basis, boundary), workers)]  # fmt: skip
-            pool.map(_baseline_worker, parts)
+            pool.map(_baseline_worker, parts, chunksize=1)
             pooled = time.perf_counter() - t0
         out[gradient] = {
             "conditions_timed": n,

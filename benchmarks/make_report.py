@@ -153,6 +153,7 @@ def main() -> None:
     lines += markdown_tables(
         "generations_per_sec_*.md", "Generations per second (`benchmarks/generations_per_sec.py`)"
     )
+    lines += [*(RESULTS.parent / "changes.md").read_text().strip().splitlines(), ""]
     lines += markdown_tables(
         "sharded_generations_*.md",
         "Generations per second over several GPUs (`benchmarks/sharded_generations.py`)",
@@ -174,6 +175,11 @@ def main() -> None:
             "limit_violations",
             "hand_error_m",
         ],
+    )
+    lines += json_summaries(
+        "profile_generation_*.json",
+        "Where a generation's time goes (`benchmarks/profile_generation.py`)",
+        ["conditions", "samples", "overrides", "stages", "iterations_median", "iterations_max"],
     )
     lines += json_summaries(
         "profile_online_*.json",

@@ -5,7 +5,9 @@ Stages (each jitted alone, timed after compilation, median of ``--repeats``):
 (`compile_interp.solve_boundary` with the optimisation compiler's rule), ``reduced``
 (`compile_optim.reduced_problems`: BC solve + orthonormal null directions + node arrays),
 ``value``, ``value_grad`` and ``hessian`` of the batched search objective at z = 0,
-``eigh`` of the batch's trust-region model (B, n, n), and the whole optimiser
+``eigh`` of the batch's trust-region model (B, n, n) (``jnp.linalg.eigh``, and ``small_eigh``:
+Jacobi on accelerators), ``tr_step`` (the trust-region step of that model: eigh + secular
+iterations), and the whole optimiser
 (``optimise``) and generation step (``step``). The sum of the parts is not the step: inside one
 jit XLA fuses across them.
 
@@ -34,9 +36,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from dynamics_throughput import machine_info  # noqa: E402
 from generations_per_sec import build  # noqa: E402
 
-from evojax_motion.basis import pca_basis, select_neighbours  # noqa: E402
+from evojax_motion.basis import pca_basis, select_neighbours, small_eigh  # noqa: E402
 from evojax_motion.compile_interp import solve_boundary  # noqa: E402
 from evojax_motion.compile_optim import (  # noqa: E402
+    _trust_region_step,
     compile_optimisation,
     make_objective,
     reduced_problems,
@@ -108,6 +111,10 @@ def main(argv=None) -> None:
     if hess is not None:
         sym = 0.5 * (hess + jnp.swapaxes(hess, 1, 2)) + 1e-3 * jnp.eye(j * f)
         run("eigh", jnp.linalg.eigh, sym)
+        run("small_eigh", small_eigh, sym)
+        g0 = jnp.ones((args.conditions, j * f))
+        radius = jnp.full((args.conditions,), 0.3)
+        run("tr_step", _trust_region_step, sym, g0, radius)
     out = run("optimise", lambda ba, bc: compile_optimisation(
         ba, bc, dyn, grid, robot.lower, robot.upper, st), basis, bd)  # fmt: skip
     n_human = int(np.sum(np.asarray(db.origin) == HUMAN))

@@ -37,7 +37,7 @@ import numpy as np
 
 from evojax_motion.basis import BasisSettings
 from evojax_motion.database import Database
-from evojax_motion.dynamics import Dynamics
+from evojax_motion.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.errors import UserError, check_setting
 from evojax_motion.online import (
     OnlineResult,
@@ -278,10 +278,11 @@ def make_catcher(
     lower, upper, gravity, basis_settings, settings, catch = _static_args(
         robot, basis_settings, settings, catch
     )
+    dyn, options = unfused_cpu_program(dyn)  # as `online.make_online_generator`
     fn = functools.partial(
         catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch
     )
-    return jax.jit(exact_matmuls(fn))
+    return jax.jit(exact_matmuls(fn), compiler_options=options)
 
 
 def _static_args(robot: Robot, basis_settings, settings, catch):

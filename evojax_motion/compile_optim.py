@@ -59,6 +59,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -78,13 +79,15 @@ from evojax_motion.compile_interp import (
     solve_boundary,
     trajectory,
 )
-from evojax_motion.dynamics import Dynamics
+from evojax_motion.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.errors import UserError
 from evojax_motion.objective import torque_cost
 from evojax_motion.precision import exact_matmuls
 from evojax_motion.timegrid import TimeGrid, derivatives
 
 METHODS = ("newton", "bfgs", "adam", "lbfgs")
+# Iteration budget of each method where ``max_iters`` is null (BFGS needs more, cheaper, ones).
+DEFAULT_ITERS = {"newton": 25, "bfgs": 40, "adam": 25, "lbfgs": 25}
 # Samples may exceed a joint limit by this much [rad] and still count as within it: float32
 # rounding of a BC that sits exactly on a limit.
 LIMIT_TOL = 1e-5
@@ -109,7 +112,8 @@ class OptimSettings:
 
     - ``n_components``: principal components K of eq. 3 (paper: 4).
     - ``method``: ``"newton"`` (default), ``"bfgs"``, ``"adam"`` or ``"lbfgs"`` (module docstring).
-    - ``max_iters``: iteration budget (Newton / BFGS / L-BFGS iterations, Adam steps).
+    - ``max_iters``: iteration budget (Newton / BFGS / L-BFGS iterations, Adam steps); null: the
+      method's `DEFAULT_ITERS`.
     - ``tol``: stop when the Newton decrement ``g.B^-1.g / 2`` falls below ``tol * |f|`` (Newton,
       BFGS), or the gradient norm below ``tol * (1 + |f|)`` (L-BFGS; Adam runs its budget).
     - ``hessian_every``: Newton only; refresh the exact Hessian every so many iterations (BFGS
@@ -134,7 +138,7 @@ class OptimSettings:
 
     n_components: int = 4
     method: str = "newton"
-    max_iters: int = 25
+    max_iters: int | None = None
     tol: float = 1e-6
     learning_rate: float = 0.1
     limit_margin: float = 0.02
@@ -156,9 +160,9 @@ class OptimSettings:
         )
         _check(self.method in METHODS, "method", f"one of {METHODS}", self.method)
         _check(
-            isinstance(self.max_iters, int) and self.max_iters >= 1,
+            self.max_iters is None or (isinstance(self.max_iters, int) and self.max_iters >= 1),
             "max_iters",
-            "an integer >= 1",
+            "an integer >= 1 or null",
             self.max_iters,
         )
         _check(0 <= self.tol < 1, "tol", "a number in [0, 1)", self.tol)
@@ -198,6 +202,12 @@ class OptimSettings:
         _check(self.start_scale >= 0, "start_scale", "a number >= 0", self.start_scale)
         _check(isinstance(self.seed, int), "seed", "an integer", self.seed)
         _check(0 < self.bc_leak < 1, "bc_leak", "a number in (0, 1)", self.bc_leak)
+
+    def resolved(self) -> OptimSettings:
+        """These settings with ``max_iters`` made concrete (`DEFAULT_ITERS` where it is null)."""
+        if self.max_iters is not None:
+            return self
+        return dataclasses.replace(self, max_iters=DEFAULT_ITERS[self.method])
 
 
 class Optimised(NamedTuple):
@@ -394,7 +404,8 @@ def _trust_region_step(bm, g, radius):
         return jnp.maximum(lam, lam_lo)
 
     newton_fits = (e[:, :1] > floor) & (norm(0.0) <= r)
-    lam = jax.lax.fori_loop(0, SECULAR_ITERS, secular, lam_lo)
+    # Unrolled: straight-line elementwise code XLA fuses (on GPUs one kernel, not 12 launches).
+    lam = jax.lax.fori_loop(0, SECULAR_ITERS, secular, lam_lo, unroll=True)
     lam = jnp.where(newton_fits, 0.0, lam)
     pv = -gv / (e + lam)
     # Hard case: even at lam_lo the step is shorter than the radius; go on along v_min.
@@ -628,6 +639,7 @@ def compile_optimisation(
     `make_optimisation_compiler` for a jitted version, or call this inside a larger jit (the
     evolution's generation step).
     """
+    settings = settings.resolved()
     k = settings.n_components
     dtype = basis.mean.dtype
     lower = jnp.asarray(lower, dtype)
@@ -696,24 +708,44 @@ def compile_optimisation(
     )
 
 
+def cpu_fast_path(dyn: Dynamics, settings: OptimSettings) -> tuple[Dynamics, dict | None]:
+    """``(dynamics, jit compiler_options)`` for a program that runs this compiler.
+
+    For BFGS: `dynamics.unfused_cpu_program` (on CPU with the RNEA backend, the scalar RNEA layout
+    compiled with XLA's CPU fusion emitters off, for this program only): BFGS runs on value and
+    gradient evaluations, which that layout roughly doubles on CPU (`BENCHMARKS.md`, dynamics
+    throughput with and without fusion emitters). Not for Newton: in our trials its Hessian
+    compiled several times slower that way, for a small gain in run time. Elsewhere
+    ``(dyn, None)``: unchanged.
+    """
+    if settings.resolved().method == "bfgs":
+        return unfused_cpu_program(dyn)
+    return dyn, None
+
+
 def make_optimisation_compiler(
-    dyn: Dynamics, grid: TimeGrid, lower, upper, settings: OptimSettings | None = None
+    dyn: Dynamics,
+    grid: TimeGrid,
+    lower,
+    upper,
+    settings: OptimSettings | None = None,
+    fast_path: bool = True,
 ):
     """A jitted ``compile(basis, boundary) -> Optimised`` (see `compile_optimisation`).
 
-    Compiles once per input shape; later calls with the same shapes reuse it.
+    Compiles once per input shape; later calls with the same shapes reuse it. ``fast_path``:
+    compile through `cpu_fast_path` (False: ``dyn`` as given, XLA's default options).
     """
     settings = OptimSettings() if settings is None else settings
     lower = np.asarray(lower, np.float64)
     upper = np.asarray(upper, np.float64)
     validate_limits(lower, upper, lower.shape[0] if lower.ndim == 1 else -1)
+    dyn, options = cpu_fast_path(dyn, settings) if fast_path else (dyn, None)
 
-    @jax.jit
-    @exact_matmuls
     def compile_batch(basis: Basis, boundary: Boundary) -> Optimised:
         return compile_optimisation(basis, boundary, dyn, grid, lower, upper, settings)
 
-    return compile_batch
+    return jax.jit(exact_matmuls(compile_batch), compiler_options=options)
 
 
 def validate_limits(lower, upper, n_joints: int, where: str = "joint limits") -> None:

@@ -19,6 +19,7 @@ the torque is the pure rigid-body one.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -81,3 +82,32 @@ def make_dynamics(robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32)
         site_pose=fns.site_pose,
         body_positions=fns.body_positions,
     )
+
+
+def with_rnea_form(dyn: Dynamics, form: str) -> Dynamics:
+    """``dyn`` (RNEA backend) with its functions rebuilt in layout ``form`` of
+    `dynamics_rnea.FORMS`: equal results to rounding, different speed under each XLA compiler."""
+    if dyn.backend != "rnea":
+        raise ValueError(f"with_rnea_form: expected the rnea backend, got {dyn.backend!r}")
+    from evojax_motion.dynamics_rnea import make_rnea
+
+    fns = make_rnea(dyn.robot, dyn.dtype, form)
+    return dataclasses.replace(
+        dyn, inverse=fns.inverse, site_pose=fns.site_pose, body_positions=fns.body_positions
+    )
+
+
+def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
+    """``(dynamics, jit compiler_options)`` for a jitted program that evaluates ``dyn`` many times.
+
+    On the CPU backend with RNEA: the scalar layout, compiled with XLA's CPU fusion emitters off
+    for that program only (`dynamics_rnea.UNFUSED_CPU_OPTIONS`), where it runs about twice as
+    fast as the default vector layout (`BENCHMARKS.md`, dynamics throughput). Every function of
+    the returned ``dyn`` must be traced only into programs compiled with those options: under the
+    default CPU options the scalar layout's gradients are far slower. Elsewhere ``(dyn, None)``.
+    """
+    if jax.default_backend() == "cpu" and dyn.backend == "rnea":
+        from evojax_motion.dynamics_rnea import UNFUSED_CPU_OPTIONS
+
+        return with_rnea_form(dyn, "scalar"), dict(UNFUSED_CPU_OPTIONS)
+    return dyn, None

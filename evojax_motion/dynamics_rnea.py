@@ -54,6 +54,9 @@ from evojax_motion.errors import UserError
 _HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
 _SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
 FORMS = ("vector", "scalar")
+# jit compiler options under which the scalar form is the fast one on CPU: XLA's CPU fusion
+# emitters off (`default_form`), per compiled program rather than process-wide through XLA_FLAGS.
+UNFUSED_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 _LAST_COLUMN = np.array([0.0, 0.0, 0.0, 1.0], np.float32)  # weak enough: exact 0/1 in any dtype
 
 

@@ -21,7 +21,11 @@ import jax
 import jax.numpy as jnp
 
 from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
-from evojax_motion.compile_optim import OptimSettings, make_optimisation_compiler
+from evojax_motion.compile_optim import (
+    OptimSettings,
+    cpu_fast_path,
+    make_optimisation_compiler,
+)
 from evojax_motion.database import EVOLVED, Database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import check_setting
@@ -225,7 +229,8 @@ def make_generation_step(
 
     ``db``: ``Database`` of capacity ``n_human + m`` (`init_evolved_slots`); ``conditions``:
     ``Conditions`` (m); ``generation``: int32 scalar, the index this step produces (1, 2, ...);
-    traced, so every generation reuses one compilation.
+    traced, so every generation reuses one compilation. On CPU, for BFGS (``compiler.method:
+    bfgs``), the step is compiled through `compile_optim.cpu_fast_path`.
     Returns ``(db, GenerationStats)`` where the stats mean:
 
     - ``offspring_cost_mean``: eq. 5 cost averaged over the accepted offspring;
@@ -242,7 +247,8 @@ def make_generation_step(
       joint-angle (velocity) error among the finite offspring;
     - ``converged_fraction``: offspring whose optimiser reported convergence.
     """
-    compile_opt = make_optimisation_compiler(dyn, grid, lower, upper, optim_settings)
+    dyn, options = cpu_fast_path(dyn, optim_settings)
+    compile_opt = make_optimisation_compiler(dyn, grid, lower, upper, optim_settings, False)
     n_components = optim_settings.n_components
 
     def step(db: Database, conditions, generation):
@@ -291,4 +297,4 @@ def make_generation_step(
         )
         return new_db, stats
 
-    return jax.jit(exact_matmuls(step))
+    return jax.jit(exact_matmuls(step), compiler_options=options)

@@ -57,6 +57,7 @@ import numpy as np
 from jax.sharding import AxisType, Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from evojax_motion.compile_optim import cpu_fast_path
 from evojax_motion.database import Database
 from evojax_motion.errors import UserError
 from evojax_motion.evolution import GenerationStats, make_generation_step
@@ -256,9 +257,13 @@ def make_sharded_generation_step(
     replicated = NamedSharding(mesh, P())
     fixed = (dyn, grid, lower, upper)
     stage_settings = (basis_settings, optim_settings, settings)
+    # The inner step's program options (CPU fast path) must hold for the program that inlines it.
+    _, options = cpu_fast_path(dyn, optim_settings)
     if n_dev == 1:
         plain = make_generation_step(*fixed, n_human, *stage_settings)
-        return jax.jit(plain, in_shardings=replicated, out_shardings=replicated)
+        return jax.jit(
+            plain, in_shardings=replicated, out_shardings=replicated, compiler_options=options
+        )
 
     def step(db: Database, conditions, generation):
         m = conditions.target.shape[0]
@@ -298,7 +303,12 @@ def make_sharded_generation_step(
         new_db = db._replace(**written)
         return new_db, unpad_stats(stats, m, m_pad - m)
 
-    return jax.jit(exact_matmuls(step), in_shardings=replicated, out_shardings=replicated)
+    return jax.jit(
+        exact_matmuls(step),
+        in_shardings=replicated,
+        out_shardings=replicated,
+        compiler_options=options,
+    )
 
 
 def initialize_distributed(

@@ -758,7 +758,7 @@ def _condition_figures(
             f"(torque sum {ti:.4g} N m), optimisation {co:.4g} ({to:.4g} N m)"
         )
         if co > ci:
-            opt = data.config.compiler
+            opt = data.config.compiler.resolved()
             rep.notes.append(
                 f"the optimisation compiler ended above the interpolation's cost "
                 f"(compiler.method {opt.method}, max_iters {opt.max_iters}): its budget is small"

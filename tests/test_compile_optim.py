@@ -13,7 +13,9 @@ import evojax_motion.basis as basis_module
 from evojax_motion.basis import pca_basis, select_neighbours
 from evojax_motion.compile_interp import Boundary
 from evojax_motion.compile_optim import (
+    DEFAULT_ITERS,
     OptimSettings,
+    cpu_fast_path,
     make_objective,
     make_optimisation_compiler,
     problem_trajectory,
@@ -49,6 +51,9 @@ TOL_COST = 1e-5  # relative: returned cost vs eq. 5 recomputed from the returned
 # 12 intervals at T = 24, measured <= 0.34 % worse) vs on all samples
 TOL_STRIDE = 5e-3
 TOL_JACOBI = 1e-4  # relative: optimum cost on the accelerators' Jacobi path vs LAPACK's
+# relative: BFGS optimum through the CPU fast path (scalar RNEA, fusion emitters off) vs the
+# default program; the same iterations up to float32 rounding of a differently fused program
+TOL_FAST_PATH = 1e-3
 
 
 def synthetic_demos(robot, dyn, rng):
@@ -275,3 +280,35 @@ def test_first_order_methods_improve_on_the_start(setup, method):
     start = jax.vmap(lambda q, d: torque_cost(s["dyn"], s["grid"], q, d))(q0, take[1].duration)
     assert (np.asarray(out.cost) < 0.99 * np.asarray(start)).all()
     assert np.asarray(out.bc_residual).max() <= TOL_BC_VEL
+
+
+@pytest.mark.parametrize(
+    "method, max_iters, expect",
+    [
+        ("bfgs", None, DEFAULT_ITERS["bfgs"]),
+        ("newton", None, DEFAULT_ITERS["newton"]),
+        ("adam", None, DEFAULT_ITERS["adam"]),
+        ("newton", 3, 3),
+    ],
+)
+def test_default_iteration_budget_is_per_method(method, max_iters, expect):
+    got = OptimSettings(method=method, max_iters=max_iters).resolved()
+    assert (got.method, got.max_iters) == (method, expect)
+    assert got.resolved() == got  # concrete settings stay as they are
+
+
+def test_cpu_fast_path_matches_the_default_program(setup):
+    """BFGS through `cpu_fast_path` (on CPU: scalar RNEA layout, XLA fusion emitters off for the
+    program) finds the optima of the default program; Newton keeps the default program."""
+    s = setup
+    take = jax.tree_util.tree_map(lambda a: a[:GOOD], (s["basis"], s["boundary"]))
+    settings = OptimSettings(method="bfgs")
+    dyn, options = cpu_fast_path(s["dyn"], settings)
+    assert options is not None and dyn is not s["dyn"]  # the test suite runs on CPU
+    assert cpu_fast_path(s["dyn"], OptimSettings(method="newton")) == (s["dyn"], None)
+    args = (s["dyn"], s["grid"], s["lower"], s["upper"], settings)
+    fast = make_optimisation_compiler(*args)(*take)
+    plain = make_optimisation_compiler(*args, fast_path=False)(*take)
+    assert np.asarray(fast.converged).all() and np.asarray(plain.converged).all()
+    np.testing.assert_allclose(np.asarray(fast.cost), np.asarray(plain.cost), rtol=TOL_FAST_PATH)
+    np.testing.assert_array_equal(np.asarray(fast.within_limits), np.asarray(plain.within_limits))

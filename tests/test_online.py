@@ -27,9 +27,11 @@ from evojax_motion.errors import UserError
 from evojax_motion.online import (
     OnlineSettings,
     enforce_limits,
+    make_online_generator,
     minimum_jerk,
     nearest_reachable,
     spd_solve,
+    to_numpy,
 )
 
 TOL_HAND = 1e-3  # m: final hand error of a reachable target (the benchmark asks <= 5 mm p95)
@@ -42,6 +44,9 @@ TOL_SPAN = 1e-4  # rad: least-squares residual of a trajectory in its PCA span (
 TOL_PROJ = 2e-3  # rad: our penalty projection's step vs SciPy's exact QP step (penalty slack)
 TOL_JACOBI_Q = 1e-5  # rad: accelerator path (Jacobi PCA and BC solves) vs LAPACK, same query
 TOL_JACOBI_COST = 1e-3  # relative: their eq. 5 costs (qdd amplifies the 1e-7 rad differences)
+# the CPU fast path (scalar RNEA, XLA fusion emitters off) vs the default program, same query:
+TOL_FAST_Q = 1e-5  # rad (float32 rounding of differently fused IK iterations)
+TOL_FAST_COST = 1e-3  # relative
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +97,20 @@ def test_accelerator_path_matches_lapack(env, near, monkeypatch):
         np.testing.assert_allclose(new.q, ref.q, atol=TOL_JACOBI_Q)
         np.testing.assert_allclose(new.cost, ref.cost, rtol=TOL_JACOBI_COST)
         assert ((new.q >= lo) & (new.q <= hi)).all()
+
+
+def test_cpu_fast_path_matches_the_default_program(env, near):
+    """The generator users get (on CPU: `dynamics.unfused_cpu_program`) answers like the one
+    compiled with XLA's default options and the default RNEA layout."""
+    targets, ref = near
+    plain = make_online_generator(env.robot, env.dyn, env.grid, BASIS, SETTINGS, fast_path=False)
+    c = targets.shape[0]
+    rest = np.tile(np.asarray(env.robot.rest, np.float32), (c, 1))
+    got = to_numpy(plain(env.db_device, targets, np.full(c, np.nan, np.float32), rest))
+    np.testing.assert_array_equal(got.ok, ref.ok)
+    np.testing.assert_allclose(got.q, ref.q, atol=TOL_FAST_Q)
+    np.testing.assert_allclose(got.tau, ref.tau, atol=TOL_TAU)
+    np.testing.assert_allclose(got.cost, ref.cost, rtol=TOL_FAST_COST)
 
 
 def test_query_reaches_target_within_limits_and_bcs(env, near):
