@@ -247,6 +247,25 @@ def make_generation_step(
       joint-angle (velocity) error among the finite offspring;
     - ``converged_fraction``: offspring whose optimiser reported convergence.
     """
+    step, options = generation_step(
+        dyn, grid, lower, upper, n_human, basis_settings, optim_settings, settings
+    )
+    return jax.jit(step, compiler_options=options)
+
+
+def generation_step(
+    dyn: Dynamics,
+    grid: TimeGrid,
+    lower,
+    upper,
+    n_human: int,
+    basis_settings: BasisSettings,
+    optim_settings: OptimSettings,
+    settings: EvolutionSettings,
+):
+    """``(step, compiler_options)``: the un-jitted `make_generation_step` and the options of the
+    top-level jit that must run it (JAX accepts them only there; `parallel` jits it with
+    shardings, or inlines it per device)."""
     dyn, options = cpu_fast_path(dyn, optim_settings)
     compile_opt = make_optimisation_compiler(dyn, grid, lower, upper, optim_settings, False)
     n_components = optim_settings.n_components
@@ -297,4 +316,4 @@ def make_generation_step(
         )
         return new_db, stats
 
-    return jax.jit(exact_matmuls(step), compiler_options=options)
+    return exact_matmuls(step), options

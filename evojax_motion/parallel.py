@@ -60,7 +60,7 @@ from jax.sharding import PartitionSpec as P
 from evojax_motion.compile_optim import cpu_fast_path
 from evojax_motion.database import Database
 from evojax_motion.errors import UserError
-from evojax_motion.evolution import GenerationStats, make_generation_step
+from evojax_motion.evolution import GenerationStats, generation_step
 from evojax_motion.precision import exact_matmuls
 
 CONDITION_AXIS = "conditions"
@@ -257,10 +257,10 @@ def make_sharded_generation_step(
     replicated = NamedSharding(mesh, P())
     fixed = (dyn, grid, lower, upper)
     stage_settings = (basis_settings, optim_settings, settings)
-    # The inner step's program options (CPU fast path) must hold for the program that inlines it.
+    # The step's program options (CPU fast path) go on the top-level jit that inlines it.
     _, options = cpu_fast_path(dyn, optim_settings)
     if n_dev == 1:
-        plain = make_generation_step(*fixed, n_human, *stage_settings)
+        plain, _ = generation_step(*fixed, n_human, *stage_settings)
         return jax.jit(
             plain, in_shardings=replicated, out_shardings=replicated, compiler_options=options
         )
@@ -271,7 +271,7 @@ def make_sharded_generation_step(
         m_pad = padded.target.shape[0]
         full = pad_database(db, m_pad - m)
         n_full, n_local = n_human + m_pad, m_pad // n_dev
-        inner = make_generation_step(*fixed, n_full, *stage_settings)
+        inner, _ = generation_step(*fixed, n_full, *stage_settings)
 
         def local(full, slots, cond, generation):
             copies = slots._replace(condition=jnp.full_like(slots.condition, jnp.nan))

@@ -190,6 +190,7 @@ def test_sharded_generations_match_one_device(sharded_run):
     them), each from the same input database on 1 and on 4 devices."""
     out = sharded_run
     assert out["devices"] == N_DEVICES and out["m_pad"] == 8
+    assert out["bfgs_lowers"] == [True, True]  # CPU fast path under the sharded wrappers
     for gen in out["generations"]:
         g = gen["generation"]
         assert gen["human_rows_bitwise"], g
@@ -371,6 +372,7 @@ def _child_single() -> dict:
 
     import jax
 
+    from evojax_motion.compile_optim import OptimSettings
     from evojax_motion.evolution import make_generation_step
     from evojax_motion.parallel import make_sharded_generation_step, padded_count
 
@@ -418,7 +420,16 @@ def _child_single() -> dict:
             "cost_max_rel_diff": float(np.abs(ca / cb - 1.0).max(initial=0.0)),
             "stats": {k: [plain(sa[k]), plain(sb[k])] for k in sa},
         })  # fmt: skip
+    # BFGS compiles through the CPU fast path, whose compiler options JAX accepts on the top-level
+    # jit only: the sharded wrappers (one device: a jit around the step; several: the step
+    # inlined per device) must carry them (tracing a nested jit with options raises).
+    bfgs = (*args[:6], OptimSettings(method="bfgs", max_iters=3), args[7])
+    lowered = [
+        make_sharded_generation_step(*bfgs, devices=d).lower(db0, cond, np.int32(1)) is not None
+        for d in (1, N_DEVICES)
+    ]
     return {
+        "bfgs_lowers": lowered,
         "devices": jax.device_count(),
         "m_pad": padded_count(M_COND, N_DEVICES),
         "generations": gens,
