@@ -215,17 +215,10 @@ def rms_deviation_deg(q, q_ref):
     return jnp.degrees(jnp.sqrt(jnp.mean((q - q_ref) ** 2, axis=(1, 2))))
 
 
-def make_generation_step(
-    dyn: Dynamics,
-    grid: TimeGrid,
-    lower,
-    upper,
-    n_human: int,
-    basis_settings: BasisSettings,
-    optim_settings: OptimSettings,
-    settings: EvolutionSettings,
-):
-    """One generation as one jitted function ``step(db, conditions, generation)``.
+def make_generation_step(*args, **kwargs):
+    """One generation as one jitted function ``step(db, conditions, generation)``; arguments
+    as `generation_step` (``dyn, grid, lower, upper, n_human, basis_settings, optim_settings,
+    settings``).
 
     ``db``: ``Database`` of capacity ``n_human + m`` (`init_evolved_slots`); ``conditions``:
     ``Conditions`` (m); ``generation``: int32 scalar, the index this step produces (1, 2, ...);
@@ -247,9 +240,7 @@ def make_generation_step(
       joint-angle (velocity) error among the finite offspring;
     - ``converged_fraction``: offspring whose optimiser reported convergence.
     """
-    step, options = generation_step(
-        dyn, grid, lower, upper, n_human, basis_settings, optim_settings, settings
-    )
+    step, options = generation_step(*args, **kwargs)
     return jax.jit(step, compiler_options=options)
 
 
