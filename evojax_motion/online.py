@@ -563,7 +563,14 @@ def check_query(robot: Robot, targets, duration=None, q_start=None):
 
 
 def to_numpy(result: OnlineResult) -> OnlineResult:
-    """Device arrays -> numpy (one transfer)."""
+    """Device arrays -> numpy (read-only, like `jax.device_get`'s).
+
+    On accelerators one `jax.device_get` (it starts every field's copy before waiting on any);
+    on CPU the arrays already sit in host memory and ``np.asarray`` per field skips that
+    machinery, several times faster for a single query's 18 small fields.
+    """
+    if jax.default_backend() == "cpu":
+        return OnlineResult(*(np.asarray(x) for x in result))
     return OnlineResult(*jax.device_get(tuple(result)))
 
 
