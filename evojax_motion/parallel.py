@@ -257,13 +257,13 @@ def make_sharded_generation_step(
     replicated = NamedSharding(mesh, P())
     fixed = (dyn, grid, lower, upper)
     stage_settings = (basis_settings, optim_settings, settings)
-    # The step's program options (CPU fast path) go on the top-level jit that inlines it.
-    _, options = cpu_fast_path(dyn, optim_settings)
+    # The step's program options (CPU fast path) go on the top-level jit that runs or inlines it.
     if n_dev == 1:
-        plain, _ = generation_step(*fixed, n_human, *stage_settings)
+        plain, options = generation_step(*fixed, n_human, *stage_settings)
         return jax.jit(
             plain, in_shardings=replicated, out_shardings=replicated, compiler_options=options
         )
+    _, options = cpu_fast_path(dyn, optim_settings)  # the inner steps are built when traced
 
     def step(db: Database, conditions, generation):
         m = conditions.target.shape[0]
