@@ -19,7 +19,6 @@ the torque is the pure rigid-body one.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -53,8 +52,12 @@ class Dynamics:
     body_positions: Callable
 
 
-def make_dynamics(robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32) -> Dynamics:
+def make_dynamics(
+    robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32, form: str | None = None
+) -> Dynamics:
     """Build the `Dynamics` of `robot` with `backend` in `BACKENDS`, computing in `dtype`.
+
+    ``form``: RNEA only, its layout (`dynamics_rnea.make_rnea`; None: the default JAX backend's).
 
     float64 needs jax x64 enabled both here and where the functions are traced
     (``jax.enable_x64(True)`` context or the ``jax_enable_x64`` flag).
@@ -69,7 +72,7 @@ def make_dynamics(robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32)
     if backend == "rnea":
         from evojax_motion.dynamics_rnea import make_rnea
 
-        fns = make_rnea(robot, dtype)  # layout for the default JAX backend
+        fns = make_rnea(robot, dtype, form)
     else:  # lazily: importing mujoco.mjx is slow and noisy
         from evojax_motion.dynamics_mjx import make_mjx
 
@@ -81,19 +84,6 @@ def make_dynamics(robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32)
         inverse=fns.inverse,
         site_pose=fns.site_pose,
         body_positions=fns.body_positions,
-    )
-
-
-def with_rnea_form(dyn: Dynamics, form: str) -> Dynamics:
-    """``dyn`` (RNEA backend) with its functions rebuilt in layout ``form`` of
-    `dynamics_rnea.FORMS`: equal results to rounding, different speed under each XLA compiler."""
-    if dyn.backend != "rnea":
-        raise ValueError(f"with_rnea_form: expected the rnea backend, got {dyn.backend!r}")
-    from evojax_motion.dynamics_rnea import make_rnea
-
-    fns = make_rnea(dyn.robot, dyn.dtype, form)
-    return dataclasses.replace(
-        dyn, inverse=fns.inverse, site_pose=fns.site_pose, body_positions=fns.body_positions
     )
 
 
@@ -109,5 +99,5 @@ def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
     if jax.default_backend() == "cpu" and dyn.backend == "rnea":
         from evojax_motion.dynamics_rnea import UNFUSED_CPU_OPTIONS
 
-        return with_rnea_form(dyn, "scalar"), dict(UNFUSED_CPU_OPTIONS)
+        return make_dynamics(dyn.robot, "rnea", dyn.dtype, "scalar"), dict(UNFUSED_CPU_OPTIONS)
     return dyn, None

@@ -258,7 +258,9 @@ def generation_step(
     top-level jit that must run it (JAX accepts them only there; `parallel` jits it with
     shardings, or inlines it per device)."""
     dyn, options = cpu_fast_path(dyn, optim_settings)
-    compile_opt = make_optimisation_compiler(dyn, grid, lower, upper, optim_settings, False)
+    compile_opt = make_optimisation_compiler(
+        dyn, grid, lower, upper, optim_settings, fast_path=False
+    )
     n_components = optim_settings.n_components
 
     def step(db: Database, conditions, generation):
