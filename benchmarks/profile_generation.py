@@ -45,7 +45,7 @@ from evojax_motion.compile_optim import (  # noqa: E402
     reduced_problems,
 )
 from evojax_motion.config import load_config  # noqa: E402
-from evojax_motion.database import HUMAN  # noqa: E402
+from evojax_motion.database import count_human  # noqa: E402
 from evojax_motion.evolution import make_generation_step  # noqa: E402
 from evojax_motion.timegrid import make_time_grid  # noqa: E402
 
@@ -117,7 +117,7 @@ def main(argv=None) -> None:
         run("tr_step", _trust_region_step, sym, g0, radius)
     out = run("optimise", lambda ba, bc: compile_optimisation(
         ba, bc, dyn, grid, robot.lower, robot.upper, st), basis, bd)  # fmt: skip
-    n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
+    n_human = count_human(db)
     step = make_generation_step(dyn, grid, robot.lower, robot.upper, n_human, b, st, cfg.evolution)
     if "step" not in skip:
         stages["step"], _ = timed(step, db, conds, np.asarray(1, np.int32), repeats=args.repeats)

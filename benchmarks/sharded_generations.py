@@ -248,7 +248,7 @@ def main(argv=None) -> None:
     from generations_per_sec import build, machine_info
 
     from evojax_motion.config import load_config
-    from evojax_motion.database import HUMAN
+    from evojax_motion.database import count_human
 
     cfg = load_config(args.config, args.set)
     n_all = jax.device_count()
@@ -267,7 +267,7 @@ def main(argv=None) -> None:
         for m in [int(x) for x in args.sweep_conditions.split(",") if x]:
             t0 = time.perf_counter()
             _, _, _, db, cond = build(cfg, m)
-            n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
+            n_human = count_human(db)
             state = Path(tmp) / f"state_{m}.npz"
             save_state(state, db, cond, n_human)
             del db, cond  # free the parent's device memory before the children run

@@ -17,6 +17,9 @@ kind of solver on exactly our reduced problem, in float64, one condition at a ti
 Usage: ``ref = solve_reference(robot, grid, basis, boundary, settings)``; ``ref.cost (C,)`` is the
 float64 torque cost of ``ref.q``. `torque_costs_f64` evaluates any trajectories the same way, so a
 relative gap is ``(torque_costs_f64(ours) - ref.cost) / ref.cost``.
+
+Both run on the CPU (SciPy is a CPU solver; on a GPU machine each of its many small float64
+gradient calls would wait on a device round trip), with the RNEA layout for CPUs.
 """
 
 from __future__ import annotations
@@ -78,10 +81,19 @@ class MujocoCost:
         return 0.5 * duration * float(self.w @ np.sum(tau**2, axis=1))
 
 
+def _on_cpu():
+    """The context of every float64 computation here: the CPU device (module docstring)."""
+    return jax.default_device(jax.devices("cpu")[0])
+
+
+def _dynamics_f64(robot: Robot):
+    return make_dynamics(robot, "rnea", jnp.float64, form="vector")  # the CPU layout
+
+
 def torque_costs_f64(robot: Robot, grid: TimeGrid, q, duration) -> np.ndarray:
     """Float64 eq. 5 cost of each ``q (C, T, J)`` with ``duration (C,)`` (JAX RNEA, x64)."""
-    with jax.enable_x64(True):
-        dyn = make_dynamics(robot, "rnea", jnp.float64)
+    with jax.enable_x64(True), _on_cpu():
+        dyn = _dynamics_f64(robot)
         g64 = grid._replace(**{k: np.asarray(v, np.float64) for k, v in grid._asdict().items()})
         fn = jax.jit(jax.vmap(lambda qq, dd: torque_cost(dyn, g64, qq, dd)))
         out = fn(
@@ -110,8 +122,8 @@ def solve_reference(
     if gradient not in GRADIENTS:
         raise ValueError(f"gradient: expected one of {GRADIENTS}, got {gradient!r}")
     settings = OptimSettings() if settings is None else settings
-    # The reduced problem is built exactly as the compiler builds it (same dtype, so the same
-    # binding BC directions, start and null space), then solved in float64.
+    # The reduced problem is built exactly as the compiler builds it (same dtype and device, so
+    # the same binding BC directions, start and null space), then solved in float64 on the CPU.
     build = jax.jit(
         lambda b, bc: reduced_problems(
             b, bc, grid, settings.n_components, settings.bc_leak, settings.max_free_per_joint
@@ -122,13 +134,20 @@ def solve_reference(
         lambda a: np.asarray(a, np.float64) if np.asarray(a).dtype.kind == "f" else np.asarray(a),
         problems,
     )
+    with _on_cpu():
+        return _solve_on_cpu(robot, grid, problems, settings, gradient, maxiter, ftol, lower, upper)
+
+
+def _solve_on_cpu(
+    robot, grid, problems, settings, gradient, maxiter, ftol, lower, upper
+) -> ReferenceResult:
     with jax.enable_x64(True):
         lower = robot.lower if lower is None else lower
         upper = robot.upper if upper is None else upper
         lo = np.asarray(lower, np.float64) + settings.limit_margin
         hi = np.asarray(upper, np.float64) - settings.limit_margin
         if gradient == "jax":
-            dyn = make_dynamics(robot, "rnea", jnp.float64)
+            dyn = _dynamics_f64(robot)
             objective = make_objective(dyn, lo, hi, 0.0)
             value_and_grad = jax.jit(jax.value_and_grad(lambda z, prob: objective(z, prob)[1]))
         else:

@@ -41,10 +41,12 @@ def _cmd_demos(args) -> int:
 
 
 def _cmd_train(args) -> int:
+    from evojax_motion.compile_cache import enable_compile_cache
     from evojax_motion.config import load_config
     from evojax_motion.train import run_training
 
     cfg = load_config(args.config, args.set)
+    enable_compile_cache()  # a second run of the same config skips tracing and compiling
     run_training(cfg, Path(args.out), resume=args.resume, progress=not args.quiet)
     return 0
 

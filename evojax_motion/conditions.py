@@ -79,8 +79,8 @@ def _masked_mean(x, mask):
     return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
 
 
-def _take(tree, idx):
-    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+def _take(tree, idx: np.ndarray):
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], tree)
 
 
 def make_conditions(
@@ -154,8 +154,10 @@ def make_conditions(
             f"expected {m}: raise evolution.candidates_per_condition, lower "
             f"evolution.min_neighbours or shrink evolution.region_margin"
         )
-    idx = jnp.asarray(chosen[:m])  # candidates come in key order: the first m that qualify
-    return finish(cand[idx], _take(nb, idx), ik.q[idx], ik.pos_error[idx])
+    # Candidates come in key order: the first m that qualify (picked on the host: eager
+    # indexing would compile a small program per array).
+    chosen_nb, target, qf, ik_error = _take((nb, cand, ik.q, ik.pos_error), chosen[:m])
+    return finish(target, chosen_nb, qf, ik_error)
 
 
 def conditions_to_tree(c: Conditions) -> dict:

@@ -91,6 +91,12 @@ def make_database(q, duration, condition, cost=None, capacity: int | None = None
     )
 
 
+def count_human(db: Database) -> int:
+    """Rows of human origin: the human part of an evolving database comes first, so its evolved
+    slots start at this index."""
+    return int(np.sum(np.asarray(db.origin) == HUMAN))
+
+
 def humans_only(db: Database) -> Database:
     """The same arrays with every evolved entry masked out (``valid=False``)."""
     return db._replace(valid=np.asarray(db.valid) & (np.asarray(db.origin) == HUMAN))

@@ -19,6 +19,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
 from evojax_motion.compile_optim import (
@@ -169,23 +170,24 @@ def init_evolved_slots(humans: Database, conditions) -> Database:
     """Database of capacity ``n_human + m``: the human rows, then one empty slot per condition.
 
     Slot ``n_human + c`` gets condition c's target and duration (``valid=False`` until first
-    filled, ``origin=EVOLVED``, ``cost=inf``). ``humans``: only valid human rows.
+    filled, ``origin=EVOLVED``, ``cost=inf``). ``humans``: only valid human rows. Returns
+    numpy arrays.
     """
-    t, j = humans.q.shape[1:]
     m = conditions.target.shape[0]
-    dtype = humans.q.dtype
 
-    def cat(a, b):
-        return jnp.concatenate([jnp.asarray(a), jnp.asarray(b).astype(jnp.asarray(a).dtype)])
+    def cat(a, b):  # numpy: on the host, once per run (eager jnp would compile per array)
+        a = np.asarray(a)
+        fill = np.broadcast_to(np.asarray(b), (m, *a.shape[1:]))
+        return np.concatenate([a, fill.astype(a.dtype)])
 
     return Database(
-        q=cat(humans.q, jnp.zeros((m, t, j), dtype)),
+        q=cat(humans.q, 0.0),
         duration=cat(humans.duration, conditions.boundary.duration),
         condition=cat(humans.condition, conditions.target),
-        cost=cat(humans.cost, jnp.full((m,), jnp.inf)),
-        origin=cat(humans.origin, jnp.full((m,), EVOLVED)),
-        valid=cat(humans.valid, jnp.zeros((m,), bool)),
-        generation=cat(humans.generation, jnp.zeros((m,), jnp.int32)),
+        cost=cat(humans.cost, np.inf),
+        origin=cat(humans.origin, EVOLVED),
+        valid=cat(humans.valid, False),
+        generation=cat(humans.generation, 0),
     )
 
 

@@ -17,31 +17,11 @@ from __future__ import annotations
 
 import argparse
 import functools
-import os
 from pathlib import Path
 
 import numpy as np
 
 from evojax_motion.errors import UserError
-
-CACHE_ENV = "EVOJAX_MOTION_JAX_CACHE"  # a directory, or "off"
-
-
-def enable_compile_cache() -> None:
-    """Keep XLA's compiled queries on disk: a second ``generate`` starts in about a second.
-
-    ``$EVOJAX_MOTION_JAX_CACHE`` (default ``~/.cache/evojax-motion/jax``; ``off`` disables).
-    """
-    where = os.environ.get(CACHE_ENV, str(Path.home() / ".cache" / "evojax-motion" / "jax"))
-    if where.lower() == "off":
-        return
-    import jax
-
-    try:
-        Path(where).mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return  # a read-only home: run without the cache
-    jax.config.update("jax_compilation_cache_dir", where)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -177,6 +157,8 @@ def cmd_generate(args) -> int:
     from evojax_motion.online import nearest_reachable
 
     fmt = _check_out(args)
+    from evojax_motion.compile_cache import enable_compile_cache
+
     enable_compile_cache()
     session = _open(args)
     model, _, check = session
@@ -248,6 +230,8 @@ def cmd_catch(args) -> int:
     fmt = _check_out(args)
     p0, v0 = validate_ball(args.ball)
     catch = _catch_settings(args)
+    from evojax_motion.compile_cache import enable_compile_cache
+
     enable_compile_cache()
     session = _open(args)
     model = session[0]

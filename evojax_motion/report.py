@@ -241,18 +241,14 @@ class Context(NamedTuple):
     boundary: Any  # compile_interp.Boundary of one condition
 
 
-def _n_human(db) -> int:
-    from evojax_motion.database import HUMAN
-
-    return int(np.sum(np.asarray(db.origin) == HUMAN))
-
-
 def _pick_condition(data: RunData, requested: int | None, notes: list[str]) -> tuple[int, int]:
     """``(condition, slot)``: the requested one, or the first whose slot is filled in every
     database read. Raises `UserError` for an index out of range."""
+    from evojax_motion.database import count_human
+
     dbs = [x[0] for x in (data.db_gen1, data.db_final) if x is not None]
     ref = dbs[-1] if dbs else data.db_initial[0]
-    n_human = _n_human(ref)
+    n_human = count_human(ref)
     m = ref.q.shape[0] - n_human
     if m <= 0:
         raise UserError(f"{data.run_dir}: its databases hold no evolved slot (no condition)")
@@ -295,6 +291,7 @@ def condition_context(
     import jax.numpy as jnp
 
     from evojax_motion.compile_interp import Boundary
+    from evojax_motion.database import count_human
     from evojax_motion.render import robot_from_meta
     from evojax_motion.timegrid import make_time_grid
 
@@ -326,7 +323,7 @@ def condition_context(
         robot=robot,
         dyn=dyn,
         grid=make_time_grid(q.shape[0]),
-        n_human=_n_human(db),
+        n_human=count_human(db),
         condition=c,
         slot=slot,
         target=np.asarray(db.condition[slot], np.float64),
@@ -954,7 +951,7 @@ def add_report_parser(subparsers) -> None:
 
 def run_report(args) -> int:
     """The ``report`` subcommand: 0 complete, 1 incomplete run folder (figures still written)."""
-    from evojax_motion.online_cli import enable_compile_cache
+    from evojax_motion.compile_cache import enable_compile_cache
 
     enable_compile_cache()  # a second report of a run skips most of the XLA compile time
     rep = make_report(

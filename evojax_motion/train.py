@@ -44,7 +44,8 @@ CHECKPOINT_DIR, PLOT_DIR, SUMMARY_FILE = "checkpoints", "plots", "summary.json"
 DB_INITIAL, DB_GEN1, DB_FINAL = "db_initial.npz", "db_gen1.npz", "db_final.npz"
 METRIC_FIELDS = (
     "generation",
-    "seconds",
+    "seconds",  # the generation's execution time
+    "finished_at",  # Unix time [s] at its end (time to first generation, gaps on resume)
     "offspring_cost_mean",
     "db_cost_mean",
     "torque_sum_mean",
@@ -208,22 +209,10 @@ def _from_state_tree(tree: dict):
     return Database(**tree["db"]), conditions_from_tree(tree["conditions"]), int(tree["generation"])
 
 
-def _human_costs(dyn, grid, humans):
-    """Eq. 5 cost of every human primitive with this run's dynamics: ``(n,)``."""
-    import jax
-
-    from evojax_motion.objective import torque_cost
-
-    cost = jax.jit(exact_matmuls(jax.vmap(lambda q, d: torque_cost(dyn, grid, q, d))))(
-        humans.q, humans.duration
-    )
-    return np.asarray(cost, np.float32)
-
-
-def human_only_baseline(dyn, grid, conditions) -> dict:
-    """Eq. 5 cost and Fig. 5 torque sum of the human-only interpolations, averaged over the
-    conditions: what the demonstrations alone give before any evolution (``conditions.human_q``).
-    """
+def cost_program(dyn, grid, rows: int):
+    """``costs(q (n, T, J), duration (n,)) -> (eq. 5 cost (n,), Fig. 5 torque sum (n,))`` for any
+    n <= ``rows``: one compiled program of ``rows`` trajectories (padded with resting ones) that
+    serves both the human costs and the human-only baseline of a run."""
     import jax
 
     from evojax_motion.objective import cost_from_torques, torque_sum, trajectory_torques
@@ -232,9 +221,26 @@ def human_only_baseline(dyn, grid, conditions) -> dict:
         tau = trajectory_torques(dyn, grid, q, d)
         return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
 
-    cost, tsum = jax.jit(exact_matmuls(jax.vmap(one)))(
-        conditions.human_q, conditions.boundary.duration
-    )
+    batch = jax.jit(exact_matmuls(jax.vmap(one)))
+
+    def costs(q, duration):
+        n = q.shape[0]
+        q_pad = np.zeros((rows, *q.shape[1:]), np.float32)
+        q_pad[:n] = q
+        d_pad = np.ones(rows, np.float32)
+        d_pad[:n] = duration
+        cost, tsum = batch(q_pad, d_pad)
+        return np.asarray(cost)[:n], np.asarray(tsum)[:n]
+
+    return costs
+
+
+def human_only_baseline(costs, conditions) -> dict:
+    """Eq. 5 cost and Fig. 5 torque sum of the human-only interpolations, averaged over the
+    conditions: what the demonstrations alone give before any evolution (``conditions.human_q``).
+    ``costs``: `cost_program`.
+    """
+    cost, tsum = costs(conditions.human_q, conditions.boundary.duration)
     return {
         "human_only_cost_mean": _json_value(np.mean(np.asarray(cost, np.float64))),
         "human_only_torque_sum_mean": _json_value(np.mean(np.asarray(tsum, np.float64))),
@@ -276,7 +282,8 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     keep = np.asarray(humans.valid) & (np.asarray(humans.origin) == HUMAN)
     humans = Database(*(np.asarray(a)[keep] for a in humans))
     grid = make_time_grid(humans.q.shape[1])
-    humans = humans._replace(cost=_human_costs(dyn, grid, humans))
+    costs = cost_program(dyn, grid, max(humans.q.shape[0], cfg.evolution.conditions))
+    humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
     bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
     for i in bad:
         _log(f"warning: demonstration {i}: NaN/inf in its trajectory, condition or cost; not used")
@@ -288,7 +295,7 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key)
     conditions = jax.tree_util.tree_map(np.asarray, conditions)
     db = _numpy_db(init_evolved_slots(humans, conditions))
-    baseline = human_only_baseline(dyn, grid, conditions)
+    baseline = human_only_baseline(costs, conditions)
     timings = {"demos_seconds": t1 - t0, "conditions_seconds": time.perf_counter() - t1}
     return db, conditions, meta, baseline, timings
 
@@ -349,9 +356,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
     from evojax_motion import checkpoint as ck
     from evojax_motion.config import config_to_dict, config_to_yaml
-    from evojax_motion.database import HUMAN, save_database
-    from evojax_motion.parallel import make_sharded_generation_step
-    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.database import save_database
     from evojax_motion.workflow import make_robot_dynamics
 
     t_start = time.perf_counter()
@@ -360,7 +365,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resume = check_run_dir(out, config_to_dict(cfg), resume)
     robot, dyn = make_robot_dynamics(cfg)
 
-    restored, problems, manager = None, [], None
+    restored, problems, manager, early_step = None, [], None, None
     if resume and (out / CHECKPOINT_DIR).is_dir():
         manager = ck.open_manager(out / CHECKPOINT_DIR, tr.max_to_keep)
         restored, problems = _restore(out, manager, cfg, robot)
@@ -371,7 +376,14 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         metrics = [dict(r) for r in restored.meta.get("metrics", [])][:start]
         baseline = dict(restored.meta.get("baseline", {}))
     else:  # every UserError of the inputs is raised here, before anything is written
-        db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, progress)
+        early = _compile_early(cfg, robot, dyn)
+        try:
+            db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, progress)
+        except BaseException:
+            if early is not None:
+                early.wait()  # its thread ends before the error reaches the user
+            raise
+        early_step = early.result() if early is not None else None
         start, metrics = 0, []
 
     out.mkdir(parents=True, exist_ok=True)
@@ -386,16 +398,12 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         ck.save_checkpoint(manager, 0, _state_tree(db, conditions, 0), _meta([], baseline))
     ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
 
-    n_human = int(np.sum(np.asarray(db.origin) == HUMAN))
-    grid = make_time_grid(db.q.shape[1])
-    # Conditions sharded over cfg.parallel.devices (all by default); one device = the plain step.
-    step_fn = make_sharded_generation_step(
-        dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, evo,
-        devices=cfg.parallel.devices,
-    )  # fmt: skip
     t0 = time.perf_counter()
     if start < evo.generations:  # ahead of time, so that "seconds" per generation is execution
-        compiled = step_fn.lower(db, conditions, np.asarray(start + 1, np.int32)).compile()
+        if early_step is not None and early_step[0] == _avals((db, conditions)):
+            compiled = early_step[1]
+        else:
+            compiled = compile_generation_step(cfg, robot, dyn, db, conditions)
     timings["compile_seconds"] = time.perf_counter() - t0
 
     bar = tqdm(
@@ -406,7 +414,11 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             t0 = time.perf_counter()
             db_new, stats = compiled(db, conditions, np.asarray(g, np.int32))
             db = _numpy_db(jax.block_until_ready(db_new))
-            row = {"generation": g, "seconds": round(time.perf_counter() - t0, 4)}
+            row = {
+                "generation": g,
+                "seconds": round(time.perf_counter() - t0, 4),
+                "finished_at": round(time.time(), 3),
+            }
             row.update({k: _json_value(v) for k, v in stats._asdict().items()})
             metrics.append(row)
             if g == 1:  # kept for Fig. 8 (first vs last generation); written before checkpoint 1
@@ -427,7 +439,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     save_database(out / DB_FINAL, db, meta)
     plot_paths = []
     if tr.plots:
-        plot_paths = _write_plots(out, cfg, robot, db, conditions, metrics, baseline, n_human)
+        plot_paths = _write_plots(out, cfg, robot, db, conditions, metrics, baseline)
     timings["total_seconds"] = time.perf_counter() - t_start
     summary = _summary(out, metrics, baseline, timings, plot_paths)
     summary["checkpoint_problems"] = problems
@@ -437,6 +449,93 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     return summary
 
 
+def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
+    """The run's generation step, compiled for ``db`` and ``conditions``:
+    ``step(db, conditions, generation) -> (db, GenerationStats)``.
+
+    Conditions sharded over ``cfg.parallel.devices`` (all by default; one device: the plain
+    step). On one device the traced program is kept with JAX's compilation cache when that is
+    on (`compile_cache.compile_traced`), so a later process skips tracing it.
+    """
+    from evojax_motion.compile_cache import compile_traced, model_digest
+    from evojax_motion.compile_optim import cpu_fast_path
+    from evojax_motion.config import config_to_dict
+    from evojax_motion.database import count_human
+    from evojax_motion.parallel import make_sharded_generation_step, resolve_devices
+    from evojax_motion.timegrid import make_time_grid
+
+    n_human = count_human(db)
+    grid = make_time_grid(db.q.shape[1])
+    step_fn = make_sharded_generation_step(
+        dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, cfg.evolution,
+        devices=cfg.parallel.devices,
+    )  # fmt: skip
+    args = (db, conditions, np.asarray(1, np.int32))  # the generation index is traced
+    if len(resolve_devices(cfg.parallel.devices)) > 1:
+        return step_fn.lower(*args).compile()
+    sections = config_to_dict(cfg)
+    sections["evolution"].pop("generations")  # how often the step runs, not what it is
+    parts = {
+        "program": "generation_step",
+        "config": {k: sections[k] for k in ("robot", "dynamics", "basis", "compiler", "evolution")},
+        "n_human": n_human,
+        "model": model_digest(robot.mj_model),
+    }
+    return compile_traced(step_fn, args, parts, cpu_fast_path(dyn, cfg.compiler)[1])
+
+
+def _avals(tree) -> tuple:
+    import jax
+
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    return str(treedef), tuple((np.shape(x), np.result_type(x)) for x in leaves)
+
+
+def expected_inputs(cfg: Config, robot):
+    """``(db, conditions)`` of zeros shaped and typed as `initial_state` will return them, known
+    before the demonstrations are made (their count: ``demos.count``, or the valid human rows of
+    ``demos_file``); None when the file cannot be read (`initial_state` then says why).
+    A demonstration dropped as non-finite makes the real shapes differ: compare before use."""
+    from evojax_motion.conditions import conditions_from_tree, conditions_template
+    from evojax_motion.database import humans_only, load_database, make_database
+
+    if cfg.demos_file is None:
+        n, t = cfg.demos.count, cfg.demos.samples
+    else:
+        try:
+            file_db, _ = load_database(cfg.demos_file)
+        except UserError:
+            return None
+        n, t = int(np.sum(humans_only(file_db).valid)), file_db.q.shape[1]
+    j, m = len(robot.joint_names), cfg.evolution.conditions
+    humans = make_database(np.zeros((n, t, j)), np.ones(n), np.zeros((n, 3)), capacity=n + m)
+    return humans, conditions_from_tree(conditions_template(m, t, j))
+
+
+def _compile_early(cfg: Config, robot, dyn):
+    """The generation step compiled for `expected_inputs` in a background thread, started
+    before the demonstrations and conditions are made (both mostly XLA compiles too: on two
+    cores they overlap). `result()`: ``(avals, compiled)``, or None if it failed (the step is
+    then compiled again in the foreground, which reports the error); None where nothing was
+    started (several devices, no generations, an unreadable demonstrations file)."""
+    from evojax_motion.compile_cache import Background
+    from evojax_motion.parallel import resolve_devices
+
+    if cfg.evolution.generations == 0 or len(resolve_devices(cfg.parallel.devices)) > 1:
+        return None
+    expected = expected_inputs(cfg, robot)
+    if expected is None:
+        return None
+
+    def compile_expected():
+        try:
+            return _avals(expected), compile_generation_step(cfg, robot, dyn, *expected)
+        except Exception:
+            return None
+
+    return Background(compile_expected)
+
+
 def meta_of(out: Path):
     """The ``DatabaseMeta`` of a run (read back from its ``db_initial.npz``)."""
     from evojax_motion.database import load_database
@@ -444,8 +543,8 @@ def meta_of(out: Path):
     return load_database(out / DB_INITIAL)[1]
 
 
-def _write_plots(out, cfg, robot, db, conditions, metrics, baseline, n_human) -> list[str]:
-    from evojax_motion.database import load_database
+def _write_plots(out, cfg, robot, db, conditions, metrics, baseline) -> list[str]:
+    from evojax_motion.database import count_human, load_database
     from evojax_motion.plots import plot_costs, plot_joint_angles
 
     paths = []
@@ -454,6 +553,7 @@ def _write_plots(out, cfg, robot, db, conditions, metrics, baseline, n_human) ->
     if not (out / DB_GEN1).is_file():
         return paths
     first, _ = load_database(out / DB_GEN1)
+    n_human = count_human(db)
     both = np.asarray(first.valid[n_human:]) & np.asarray(db.valid[n_human:])
     c = cfg.train.plot_condition
     if c is None and both.any():  # the condition that changed most: the most telling Fig. 8

@@ -7,7 +7,7 @@ import tempfile
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # One persistent XLA cache for the whole session: the controller makes it before pytest-xdist
 # starts its workers, which inherit the variable, as do the subprocesses, the notebook kernel and
-# the command-line tools (`online_cli.CACHE_ENV`) the tests start. The same programs (the tiny
+# the command-line tools (`compile_cache.CACHE_ENV`) the tests start. The same programs (the tiny
 # config's generation step, the online query of the test database) are then compiled once, not
 # once per process. Never the user's own cache: a fresh directory per session.
 _OWN_CACHE = "PYTEST_XDIST_WORKER" not in os.environ and "EVOJAX_TEST_XLA_CACHE" not in os.environ

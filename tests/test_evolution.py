@@ -279,7 +279,7 @@ def test_generation_step_rejects_selects_and_keeps_humans(small):
     qf[0, 4] = robot.upper[4] + 0.3
     qf[1, :] = np.nan
     cond = cond._replace(boundary=cond.boundary._replace(qf=qf))
-    db0 = init_evolved_slots(humans, cond)
+    db0 = jax.tree_util.tree_map(jax.numpy.asarray, init_evolved_slots(humans, cond))
     db1, s1 = step(db0, cond, np.int32(1))
     db2, s2 = step(db1, cond, np.int32(2))
     assert step._cache_size() == 1  # the second generation reuses the compilation

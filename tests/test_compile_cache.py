@@ -1,0 +1,142 @@
+"""compile_cache: a traced program is reused across processes only when nothing it depends on
+changed, a damaged file is traced again, and nothing is written without a cache directory."""
+
+import json
+import subprocess
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from evojax_motion import compile_cache
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+class Pair(NamedTuple):
+    a: jax.Array
+    b: jax.Array
+
+
+TRACES = []
+
+
+def _make_fn():
+    """A new function object each time: JAX's in-memory trace cache is keyed by the function."""
+
+    def fn(p: Pair, k):
+        TRACES.append(1)  # runs once per trace, never when a traced program is reused
+        return Pair(a=jnp.sin(p.a) * k, b=p.b @ p.b.T), jnp.sum(p.a)
+
+    return fn
+
+
+@contextmanager
+def cache_at(folder):
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(folder) if folder else None)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+
+
+def _args(n=3):
+    p = Pair(a=np.linspace(0.0, 1.0, n, dtype=np.float32), b=np.ones((n, 2), np.float32))
+    return p, np.float32(2.0)
+
+
+def _compile(parts="pair", n=3):
+    args = _args(n)
+    return compile_cache.compile_traced(jax.jit(_make_fn()), args, parts)(*args), args
+
+
+def _expected(args):
+    p, k = args
+    return Pair(np.sin(p.a) * k, p.b @ p.b.T), np.sum(p.a)
+
+
+TOL_REL = 1e-6  # float32 sin and a 3x2 product, against numpy
+
+
+def _assert_matches(out, args):
+    leaves = jax.tree_util.tree_leaves
+    for got, want in zip(leaves(out), leaves(_expected(args)), strict=True):
+        np.testing.assert_allclose(np.asarray(got), want, rtol=TOL_REL)
+
+
+def test_second_compile_reuses_the_trace_and_keys_separate_programs(tmp_path):
+    TRACES.clear()
+    with cache_at(tmp_path):
+        out, args = _compile()
+        assert len(TRACES) == 1
+        files = list((tmp_path / compile_cache.TRACED_DIR).glob("*.jaxexport"))
+        assert len(files) == 1
+        out2, _ = _compile()  # the same program from a new function object: loaded, not traced
+        assert len(TRACES) == 1
+        _assert_matches(out, args)
+        _assert_matches(out2, args)
+        assert isinstance(out2[0], Pair)  # the result tree comes back with its NamedTuple
+        _compile(n=4)  # other shapes: another program
+        _compile(parts="other")  # what the caller names differs: another program
+        assert len(TRACES) == 3
+        assert len(list((tmp_path / compile_cache.TRACED_DIR).glob("*.jaxexport"))) == 3
+        assert not list((tmp_path / compile_cache.TRACED_DIR).glob(".*.tmp"))
+
+
+def test_damaged_file_is_reported_and_traced_again(tmp_path, capsys):
+    TRACES.clear()
+    with cache_at(tmp_path):
+        _compile()
+        (path,) = (tmp_path / compile_cache.TRACED_DIR).glob("*.jaxexport")
+        path.write_bytes(path.read_bytes()[:200])  # truncated
+        out, args = _compile()
+    err = capsys.readouterr().err
+    assert f"{path}: unreadable traced program" in err
+    assert len(TRACES) == 2
+    _assert_matches(out, args)
+    header = path.read_bytes().split(b"\n", 1)[0]  # written anew, whole
+    assert json.loads(header)["namedtuples"] == [f"{__name__}:Pair"]
+
+
+def test_without_a_cache_directory_nothing_is_written(tmp_path):
+    TRACES.clear()
+    with cache_at(None):
+        out, args = _compile()
+        out, args = _compile()
+    assert len(TRACES) == 2
+    _assert_matches(out, args)
+    assert not list(tmp_path.iterdir())
+
+
+def test_key_covers_source_versions_and_precision():
+    args = _args()
+    key = compile_cache.program_key("p", args)
+    assert compile_cache.program_key("p", args) == key
+    assert compile_cache.program_key("q", args) != key
+    assert compile_cache.program_key("p", _args(4)) != key
+    with jax.default_matmul_precision("highest"):
+        assert compile_cache.program_key("p", args) != key
+    with jax.enable_x64(True):
+        assert compile_cache.program_key("p", args) != key
+
+
+@pytest.mark.slow
+def test_model_digest_is_stable_across_processes():
+    """The key must not change between two processes that load the same robot model."""
+    code = (
+        "from evojax_motion.robot import load_robot; from evojax_motion.compile_cache import "
+        "model_digest; print(model_digest(load_robot('mahru_arm').mj_model))"
+    )
+    digests = {
+        subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO
+        ).stdout.strip()
+        for _ in range(2)
+    }
+    assert len(digests) == 1 and len(digests.pop()) == 64
