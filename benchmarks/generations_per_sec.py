@@ -272,7 +272,7 @@ def markdown(result: dict) -> str:
             lines.append(f"| {name} | {r['seconds_per_generation']:.4g} | {r['speedup']:.1f}x |")
     if "first_generation" in result:
         source = "read from a file" if result.get("demos_from_file") else "synthesised"
-        lines += ["", f"Demonstrations {source}:", "",
+        lines += ["", f"Time to first generation, demonstrations {source}:", "",
                   "| `train`, one generation, fresh process | to first generation s | "
                   "demonstrations s | conditions s | compile wait s | generation s |",
                   "|---|---:|---:|---:|---:|---:|"]  # fmt: skip

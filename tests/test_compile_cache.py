@@ -140,3 +140,18 @@ def test_model_digest_is_stable_across_processes():
         for _ in range(2)
     }
     assert len(digests) == 1 and len(digests.pop()) == 64
+
+
+def test_background_runs_under_the_callers_settings_and_reraises():
+    """JAX keeps x64 and the matmul precision per thread: the worker must see the caller's."""
+
+    def settings():
+        return jax.config.jax_default_matmul_precision, jnp.zeros(1).dtype
+
+    with jax.default_matmul_precision("highest"), jax.enable_x64(True):
+        assert compile_cache.Background(settings).result() == ("highest", jnp.float64)
+    assert compile_cache.Background(settings).result()[1] == jnp.float32
+
+    failing = compile_cache.Background(lambda: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        failing.result()
