@@ -126,7 +126,8 @@ class Background:
     """``fn(*args)`` in a thread (XLA compiles without holding the GIL, so a compile proceeds
     on another core while this thread prepares the data); `result` waits for it and returns its
     value or raises its exception. The thread runs under the caller's x64 and matmul-precision
-    settings (JAX keeps those per thread)."""
+    settings (JAX keeps those per thread). A compile cannot be cancelled: a caller that fails
+    meanwhile should `wait` before it exits (exiting under a running XLA compile is unsafe)."""
 
     def __init__(self, fn, *args):
         self._out: tuple = (None, None)
