@@ -77,15 +77,21 @@ def model_digest(mj_model) -> str:
     return hashlib.sha256(buf.tobytes()).hexdigest()
 
 
+def signature(tree) -> tuple:
+    """What a traced program depends on in its arguments: the tree structure and each leaf's
+    shape, dtype and weak type (JSON-able; equal signatures trace to the same program)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    avals = [
+        [list(np.shape(x)), str(np.result_type(x)), bool(getattr(x, "weak_type", False))]
+        for x in leaves
+    ]
+    return str(treedef), avals
+
+
 def program_key(parts: Any, args: tuple) -> str:
     """The cache key of the program ``parts`` names, traced for ``args`` (see the module doc)."""
     import jaxlib
 
-    leaves, treedef = jax.tree_util.tree_flatten(args)
-    avals = [
-        (tuple(np.shape(x)), str(np.result_type(x)), bool(getattr(x, "weak_type", False)))
-        for x in leaves
-    ]
     devices = jax.devices()
     record = {
         "parts": parts,
@@ -95,7 +101,7 @@ def program_key(parts: Any, args: tuple) -> str:
         "backend": [jax.default_backend(), devices[0].device_kind, len(devices)],
         "x64": bool(jax.config.jax_enable_x64),  # type: ignore[attr-defined]
         "matmul_precision": str(jax.config.jax_default_matmul_precision),  # type: ignore[attr-defined]
-        "args": [str(treedef), avals],
+        "args": signature(args),
     }
     text = json.dumps(record, sort_keys=True, default=repr)
     return hashlib.sha256(text.encode()).hexdigest()
