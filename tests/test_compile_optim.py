@@ -250,9 +250,13 @@ def test_accelerator_path_matches_lapack(setup, monkeypatch):
     take = jax.tree_util.tree_map(lambda a: a[:GOOD], (s["basis"], s["boundary"]))
     settings = OptimSettings()
     free = settings.max_free_per_joint
-    ref = reduced_problems(*take, s["grid"], K, max_free=free)[0]
+
+    def problems():  # jitted (eagerly, every operation would compile on its own), traced anew
+        return jax.jit(lambda b, bc: reduced_problems(b, bc, s["grid"], K, max_free=free))(*take)[0]
+
+    ref = problems()
     monkeypatch.setattr(basis_module, "jacobi_backend", lambda: True)
-    acc = reduced_problems(*take, s["grid"], K, max_free=free)[0]
+    acc = problems()
     np.testing.assert_array_equal(np.asarray(acc.mask), np.asarray(ref.mask))
     np.testing.assert_allclose(np.asarray(acc.q_ls), np.asarray(ref.q_ls), atol=1e-5)
     # Directions are unique up to rotations within a joint's span: compare the projectors.

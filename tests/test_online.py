@@ -82,16 +82,19 @@ def test_accelerator_path_matches_lapack(env, near, monkeypatch):
     c = targets.shape[0]
     rest = np.tile(np.asarray(env.robot.rest, np.float32), (c, 1))
     args = (env.db_device, targets, np.full(c, np.nan, np.float32), rest)
+
+    def query(lo, hi, *a):  # the limits as arguments: one compile per path serves both
+        return online_query(env.dyn, env.grid, lo, hi, BASIS, SETTINGS, *a)
+
+    compiled = {}
+    for jacobi in (False, True):
+        for module in (basis_module, interp_module):
+            monkeypatch.setattr(module, "jacobi_backend", lambda j=jacobi: j)
+        compiled[jacobi] = jax.jit(exact_matmuls(query)).lower(lower, upper, *args).compile()
     for shrink in (1.0, 0.6):
         mid = 0.5 * (lower + upper)
         lo, hi = mid + shrink * (lower - mid), mid + shrink * (upper - mid)
-        out = []
-        for jacobi in (False, True):
-            for module in (basis_module, interp_module):
-                monkeypatch.setattr(module, "jacobi_backend", lambda j=jacobi: j)
-            fn = functools.partial(online_query, env.dyn, env.grid, lo, hi, BASIS, SETTINGS)
-            out.append(to_numpy(jax.jit(exact_matmuls(fn))(*args)))
-        ref, new = out
+        ref, new = (to_numpy(compiled[jacobi](lo, hi, *args)) for jacobi in (False, True))
         assert shrink == 1.0 or ref.limit_excess.min() > 0  # the projection ran
         np.testing.assert_array_equal(ref.ok, new.ok)
         np.testing.assert_allclose(new.q, ref.q, atol=TOL_JACOBI_Q)
