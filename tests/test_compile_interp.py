@@ -190,12 +190,16 @@ def test_leave_one_out_reproduces_demonstrations():
         nb = select_neighbours(cond, v, target[None], 10, 0.15)
         return jax.tree_util.tree_map(lambda a: a[0], nb)
 
-    nb = jax.vmap(neighbours)(valid, cond[held])
+    @jax.jit  # one program (eagerly, each operation would compile on its own)
+    def rebuild(valid):
+        nb = jax.vmap(neighbours)(valid, cond[held])
+        basis = pca_basis(q, dur, nb, K)
+        z = jnp.zeros((n, q.shape[2]))
+        bc = Boundary(q[held, 0], q[held, -1], z, z, dur[held])
+        return nb, compile_interpolation(basis, bc, make_time_grid(T), K)
+
+    nb, out = rebuild(valid)
     assert not ((np.asarray(nb.index) == held[:, None]) & np.asarray(nb.mask)).any()
-    basis = pca_basis(q, dur, nb, K)
-    z = jnp.zeros((n, q.shape[2]))
-    bc = Boundary(q[held, 0], q[held, -1], z, z, dur[held])
-    out = compile_interpolation(basis, bc, make_time_grid(T), K)
     rms = np.degrees(np.sqrt(np.mean((np.asarray(out.q) - np.asarray(q[held])) ** 2, axis=(1, 2))))
     print(f"leave-one-out RMS error: median {np.median(rms):.2f} deg, max {rms.max():.2f} deg")
     assert np.median(rms) < LOO_MEDIAN_DEG

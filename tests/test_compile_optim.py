@@ -69,6 +69,11 @@ def synthetic_demos(robot, dyn, rng):
     return q, np.asarray(pos), rng.uniform(0.8, 1.2, N_DEMOS).astype(np.float32)
 
 
+def reduced(basis, boundary, grid, *static, **kw):
+    """`reduced_problems` as one program (run eagerly, each of its operations compiles alone)."""
+    return jax.jit(lambda b, bc: reduced_problems(b, bc, grid, *static, **kw))(basis, boundary)
+
+
 @pytest.fixture(scope="module")
 def setup():
     robot = load_robot("mahru_arm", joints=JOINTS)
@@ -82,10 +87,10 @@ def setup():
     upper = np.minimum(q.max(axis=(0, 1)) + 0.15, robot.upper).astype(np.float64)
     targets = cond[:8] + rng.normal(0, 0.01, (8, 3)).astype(np.float32)
     targets[6] = np.nan  # selects no neighbour: NaN basis
-    nb = select_neighbours(
+    nb = jax.jit(select_neighbours, static_argnums=(3, 4))(
         jnp.asarray(cond), jnp.ones(N_DEMOS, bool), jnp.asarray(targets), 8, 0.15
     )
-    basis = pca_basis(jnp.asarray(q), jnp.asarray(dur), nb, K)
+    basis = jax.jit(pca_basis, static_argnums=3)(jnp.asarray(q), jnp.asarray(dur), nb, K)
     qf = np.clip(q[:8, -1] + rng.normal(0, 0.05, (8, 3)), lower + 0.05, upper - 0.05)
     qf[5, 1] = np.nan
     qf[7, 2] = upper[2] + 0.3
@@ -124,7 +129,7 @@ def test_gradient_in_null_space_matches_finite_differences(setup, x64):
 
     take = jax.tree_util.tree_map(lambda a: a[:2], (s["basis"], s["boundary"]))
     st = OptimSettings()
-    problems, _, _ = reduced_problems(*f64(take), g64, K, st.bc_leak, st.max_free_per_joint)
+    problems, _, _ = reduced(*f64(take), g64, K, st.bc_leak, st.max_free_per_joint)
     # Tight limits so that the penalty term is active in the gradient too.
     lo, hi = s["lower"] + 0.2, s["upper"] - 0.2
     objective = make_objective(dyn, lo, hi, 1e3)
@@ -208,7 +213,7 @@ def test_search_objective_is_the_quadrature_of_eq5(setup, stride):
     torques of the full trajectory; with stride 1 that is eq. 5 itself."""
     s = setup
     take = jax.tree_util.tree_map(lambda a: a[:GOOD], (s["basis"], s["boundary"]))
-    problems, _, _ = reduced_problems(*take, s["grid"], K, max_free=2, stride=stride)
+    problems, _, _ = reduced(*take, s["grid"], K, max_free=2, stride=stride)
     idx, w = search_nodes(s["grid"], stride)
     assert idx[0] == 0 and idx[-1] == T - 1 and abs(w.sum() - 1) < 1e-6
     objective = make_objective(s["dyn"], s["lower"], s["upper"], 0.0)
@@ -251,8 +256,8 @@ def test_accelerator_path_matches_lapack(setup, monkeypatch):
     settings = OptimSettings()
     free = settings.max_free_per_joint
 
-    def problems():  # jitted (eagerly, every operation would compile on its own), traced anew
-        return jax.jit(lambda b, bc: reduced_problems(b, bc, s["grid"], K, max_free=free))(*take)[0]
+    def problems():  # traced anew: after the patch, the other code path
+        return reduced(*take, s["grid"], K, max_free=free)[0]
 
     ref = problems()
     monkeypatch.setattr(basis_module, "jacobi_backend", lambda: True)
@@ -277,9 +282,7 @@ def test_first_order_methods_improve_on_the_start(setup, method):
     take = jax.tree_util.tree_map(lambda a: a[:2], (s["basis"], s["boundary"]))
     settings = OptimSettings(method=method, max_iters=40, limit_penalty=0.0)
     out = make_optimisation_compiler(s["dyn"], s["grid"], s["lower"], s["upper"], settings)(*take)
-    problems, _, _ = reduced_problems(
-        *take, s["grid"], K, settings.bc_leak, settings.max_free_per_joint
-    )
+    problems, _, _ = reduced(*take, s["grid"], K, settings.bc_leak, settings.max_free_per_joint)
     q0 = jax.vmap(problem_trajectory)(problems, jnp.zeros(problems.mask.shape))
     start = jax.vmap(lambda q, d: torque_cost(s["dyn"], s["grid"], q, d))(q0, take[1].duration)
     assert (np.asarray(out.cost) < 0.99 * np.asarray(start)).all()
