@@ -187,10 +187,15 @@ def _save(path: Path, exported) -> None:
     serializes those only when registered; `_load` registers them before deserializing).
     """
     types = _namedtuple_types(exported.in_tree) | _namedtuple_types(exported.out_tree)
-    for typ in types:
-        _register(typ)
     names = sorted(f"{t.__module__}:{t.__qualname__}" for t in types)
-    data = json.dumps({"namedtuples": names}).encode() + b"\n" + bytes(exported.serialize())
+    try:
+        for typ in types:
+            _register(typ)
+        body = bytes(exported.serialize())
+    except Exception as e:  # e.g. no flatbuffers: run on, untraced next time too
+        print(f"warning: {path}: traced program not saved ({e})", file=sys.stderr)
+        return
+    data = json.dumps({"namedtuples": names}).encode() + b"\n" + body
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

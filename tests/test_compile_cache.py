@@ -155,3 +155,17 @@ def test_background_runs_under_the_callers_settings_and_reraises():
     failing = compile_cache.Background(lambda: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         failing.result()
+
+
+def test_a_program_that_cannot_be_saved_still_compiles(tmp_path, capsys, monkeypatch):
+    """Serialization needs flatbuffers: without it the run goes on, warned, with nothing saved."""
+
+    def no_flatbuffers(self, *a, **k):
+        raise ImportError("Please install 'flatbuffers'")
+
+    monkeypatch.setattr(jax.export.Exported, "serialize", no_flatbuffers)
+    with cache_at(tmp_path):
+        out, args = _compile()
+    _assert_matches(out, args)
+    assert "traced program not saved (Please install 'flatbuffers')" in capsys.readouterr().err
+    assert not list((tmp_path / compile_cache.TRACED_DIR).glob("*"))
