@@ -114,7 +114,7 @@ def test_without_a_cache_directory_nothing_is_written(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
-def test_key_covers_source_versions_and_precision():
+def test_key_changes_with_parts_shapes_precision_and_x64():
     args = _args()
     key = compile_cache.program_key("p", args)
     assert compile_cache.program_key("p", args) == key
