@@ -490,8 +490,8 @@ def expected_inputs(cfg: Config, robot):
     before the demonstrations are made (their count: ``demos.count``, or the valid human rows of
     ``demos_file``); None when the file cannot be read (`initial_state` then says why).
     A demonstration dropped as non-finite makes the real shapes differ: compare before use."""
-    from evojax_motion.conditions import conditions_from_tree, conditions_template
-    from evojax_motion.database import humans_only, load_database, make_database
+    from evojax_motion.conditions import conditions_from_tree, conditions_template, human_mask
+    from evojax_motion.database import load_database, make_database
 
     if cfg.demos_file is None:
         n, t = cfg.demos.count, cfg.demos.samples
@@ -500,7 +500,7 @@ def expected_inputs(cfg: Config, robot):
             file_db, _ = load_database(cfg.demos_file)
         except UserError:
             return None
-        n, t = int(np.sum(humans_only(file_db).valid)), file_db.q.shape[1]
+        n, t = int(human_mask(file_db).sum()), file_db.q.shape[1]
     j, m = len(robot.joint_names), cfg.evolution.conditions
     humans = make_database(np.zeros((n, t, j)), np.ones(n), np.zeros((n, 3)), capacity=n + m)
     return humans, conditions_from_tree(conditions_template(m, t, j))
