@@ -227,7 +227,12 @@ def unpad_stats(stats: GenerationStats, m: int, extra: int) -> GenerationStats:
     )
 
 
-def make_sharded_generation_step(
+def make_sharded_generation_step(*args, **kwargs):
+    """The jitted step of `sharded_generation_step` (same arguments)."""
+    return sharded_generation_step(*args, **kwargs)[0]
+
+
+def sharded_generation_step(
     dyn,
     grid,
     lower,
@@ -238,7 +243,9 @@ def make_sharded_generation_step(
     settings,
     devices: int | Sequence | None = None,
 ):
-    """`evolution.make_generation_step` with the conditions sharded over ``devices``.
+    """``(step, compiler_options)``: `evolution.make_generation_step` with the conditions sharded
+    over ``devices``, and the compiler options its jit carries (`compile_optim.cpu_fast_path`;
+    needed again by whoever compiles the step another way, e.g. `compile_cache.compile_traced`).
 
     Same arguments plus ``devices`` (`resolve_devices`: ``None`` = all, an int = the first n, or a
     sequence); same contract: a jitted ``step(db, conditions, generation) -> (db, GenerationStats)``
@@ -260,9 +267,10 @@ def make_sharded_generation_step(
     # The step's program options (CPU fast path) go on the top-level jit that runs or inlines it.
     if n_dev == 1:
         plain, options = generation_step(*fixed, n_human, *stage_settings)
-        return jax.jit(
+        jitted = jax.jit(
             plain, in_shardings=replicated, out_shardings=replicated, compiler_options=options
         )
+        return jitted, options
     _, options = cpu_fast_path(dyn, optim_settings)  # the inner steps are built when traced
 
     def step(db: Database, conditions, generation):
@@ -303,12 +311,13 @@ def make_sharded_generation_step(
         new_db = db._replace(**written)
         return new_db, unpad_stats(stats, m, m_pad - m)
 
-    return jax.jit(
+    jitted = jax.jit(
         exact_matmuls(step),
         in_shardings=replicated,
         out_shardings=replicated,
         compiler_options=options,
     )
+    return jitted, options
 
 
 def initialize_distributed(

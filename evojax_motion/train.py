@@ -459,15 +459,14 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     on (`compile_cache.compile_traced`), so a later process skips tracing it.
     """
     from evojax_motion.compile_cache import compile_traced, model_digest
-    from evojax_motion.compile_optim import cpu_fast_path
     from evojax_motion.config import config_to_dict
     from evojax_motion.database import count_human
-    from evojax_motion.parallel import make_sharded_generation_step, resolve_devices
+    from evojax_motion.parallel import resolve_devices, sharded_generation_step
     from evojax_motion.timegrid import make_time_grid
 
     n_human = count_human(db)
     grid = make_time_grid(db.q.shape[1])
-    step_fn = make_sharded_generation_step(
+    step_fn, options = sharded_generation_step(
         dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, cfg.evolution,
         devices=cfg.parallel.devices,
     )  # fmt: skip
@@ -482,7 +481,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
         "n_human": n_human,
         "model": model_digest(robot.mj_model),
     }
-    return compile_traced(step_fn, args, parts, cpu_fast_path(dyn, cfg.compiler)[1])
+    return compile_traced(step_fn, args, parts, options)
 
 
 def expected_inputs(cfg: Config, robot):
