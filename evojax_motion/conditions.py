@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compile_cache import traced_program
 from evojax_motion.compile_interp import Boundary, compile_interpolation
 from evojax_motion.database import HUMAN, Database
 from evojax_motion.dynamics import Dynamics
@@ -91,10 +92,14 @@ def make_conditions(
     basis: BasisSettings,
     grid: TimeGrid,
     key: jax.Array,
+    cache_parts: Any = None,
 ) -> Conditions:
     """Draw the m conditions of ``settings`` (``EvolutionSettings``) from human demonstrations.
 
     ``db``: the database; only its valid human rows are used. ``key``: the only randomness.
+    ``cache_parts``: what `compile_cache.traced_program` keys its programs by besides their
+    arguments (the config sections and robot model behind ``dyn``, ``robot``, ``settings`` and
+    ``basis``); None compiles them in this process only.
     Raises ``UserError`` when fewer than m candidates qualify.
     """
     m = settings.conditions
@@ -107,22 +112,25 @@ def make_conditions(
         )
     n_cand = m * settings.candidates_per_condition
     q = jnp.asarray(db.q)
-    duration = jnp.asarray(db.duration)
-    human = jnp.asarray(human_mask(db))
     lower, upper = jnp.asarray(robot.lower, q.dtype), jnp.asarray(robot.upper, q.dtype)
 
-    @jax.jit  # two jitted stages around the data-dependent choice (eager PCA is ~100x slower)
-    @exact_matmuls
-    def candidates(key, condition):
+    # Jitted stages around the data-dependent choices (eager PCA is ~100x slower); the data are
+    # arguments, not constants, so that a later run with other demonstrations reuses them.
+    @jax.jit
+    def candidates(key, lo, hi, condition, human):
         cand = jax.random.uniform(key, (n_cand, 3), q.dtype, lo, hi)
         nb = select_neighbours(condition, human, cand, basis.neighbours, basis.radius, basis.w_pos)
-        final = q[nb.index, -1]  # (n_cand, k, J) the neighbours' final postures
-        ik = solve_ik(dyn, cand, final[:, 0], lower, upper, q_pref=_masked_mean(final, nb.mask))
-        return cand, nb, ik
+        return cand, nb
 
     @jax.jit
     @exact_matmuls
-    def finish(target, nb, qf, ik_error):
+    def reach(cand, nb, q):
+        final = q[nb.index, -1]  # (m, k, J) the neighbours' final postures
+        return solve_ik(dyn, cand, final[:, 0], lower, upper, q_pref=_masked_mean(final, nb.mask))
+
+    @jax.jit
+    @exact_matmuls
+    def finish(target, nb, qf, ik_error, q, duration):
         j = q.shape[-1]
         if settings.duration is None:
             dur = _masked_mean(duration[nb.index], nb.mask)
@@ -142,22 +150,39 @@ def make_conditions(
             human_q=ref.q.astype(f32),
         )
 
-    cand, nb, ik = candidates(key, jnp.asarray(db.condition, q.dtype))
-    enough = np.asarray(nb.n_inside) >= settings.min_neighbours
-    reached = np.asarray(ik.pos_error) <= settings.ik_tolerance
-    chosen = np.flatnonzero(enough & reached)
-    if chosen.size < m:
+    if cache_parts is not None:
+        candidates, reach, finish = (
+            traced_program(f, cache_parts) for f in (candidates, reach, finish)
+        )  # fmt: skip
+    condition = jnp.asarray(db.condition, q.dtype)
+    cand, nb = candidates(key, lo, hi, condition, human_mask(db))
+    # In key order, the first m candidates with enough neighbours whose IK reaches them. The IK
+    # (the costly part) runs on m candidates at a time, as many times as that takes: usually
+    # once or twice, where all n_cand of them would be 8x the work at the default oversampling.
+    near = np.flatnonzero(np.asarray(nb.n_inside) >= settings.min_neighbours)
+    chosen, qf, ik_error = [], [], []
+    for start in range(0, near.size, m):
+        idx = near[start : start + m]
+        padded = np.concatenate([idx, np.full(m - idx.size, idx[-1])])  # one program shape
+        ik = reach(*_take((cand, nb), padded), q)
+        ok = np.flatnonzero(np.asarray(ik.pos_error)[: idx.size] <= settings.ik_tolerance)
+        chosen.append(idx[ok])
+        qf.append(np.asarray(ik.q)[ok])
+        ik_error.append(np.asarray(ik.pos_error)[ok])
+        if sum(c.size for c in chosen) >= m:
+            break
+    n_chosen = sum(c.size for c in chosen)
+    if n_chosen < m:
         raise UserError(
-            f"evolution.conditions: only {chosen.size} of {n_cand} candidate targets have "
+            f"evolution.conditions: only {n_chosen} of {n_cand} candidate targets have "
             f">= {settings.min_neighbours} demonstrations within {basis.radius} m and an IK "
-            f"posture within {settings.ik_tolerance} m ({int(enough.sum())} pass the first test); "
+            f"posture within {settings.ik_tolerance} m ({near.size} pass the first test); "
             f"expected {m}: raise evolution.candidates_per_condition, lower "
             f"evolution.min_neighbours or shrink evolution.region_margin"
         )
-    # Candidates come in key order: the first m that qualify (picked on the host: eager
-    # indexing would compile a small program per array).
-    chosen_nb, target, qf, ik_error = _take((nb, cand, ik.q, ik.pos_error), chosen[:m])
-    return finish(target, chosen_nb, qf, ik_error)
+    chosen_nb, target = _take((nb, cand), np.concatenate(chosen)[:m])
+    qf_m, ik_error_m = np.concatenate(qf)[:m], np.concatenate(ik_error)[:m]
+    return finish(target, chosen_nb, qf_m, ik_error_m, q, jnp.asarray(db.duration, q.dtype))
 
 
 def conditions_to_tree(c: Conditions) -> dict:

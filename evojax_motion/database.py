@@ -61,6 +61,18 @@ class DatabaseMeta:
     synthetic: bool
     description: str = ""
 
+    @classmethod
+    def of_robot(cls, robot, synthetic: bool, description: str) -> DatabaseMeta:
+        """The meta of data recorded for ``robot`` (a `robot.Robot`)."""
+        return cls(
+            robot_name=robot.name,
+            mjcf=robot.mjcf,
+            joint_names=tuple(robot.joint_names),
+            site_name=robot.site_name,
+            synthetic=synthetic,
+            description=description,
+        )
+
 
 def make_database(q, duration, condition, cost=None, capacity: int | None = None) -> Database:
     """Database of human primitives ``q (n, T, J)`` padded to ``capacity`` with empty evolved slots.

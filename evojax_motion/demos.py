@@ -42,13 +42,14 @@ import functools
 import math
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from evojax_motion.compile_cache import compile_traced
 from evojax_motion.database import HUMAN, Database, make_database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
@@ -585,7 +586,11 @@ def _accept(trials: _Trials, settings: DemoSettings) -> np.ndarray:
 
 
 def generate_demonstrations(
-    robot: Robot, dyn: Dynamics, settings: DemoSettings, key: jax.Array | None = None
+    robot: Robot,
+    dyn: Dynamics,
+    settings: DemoSettings,
+    key: jax.Array | None = None,
+    cache_parts: Any = None,
 ) -> tuple[Database, dict]:
     """``settings.count`` synthetic catching demonstrations of ``robot`` and a report.
 
@@ -595,6 +600,9 @@ def generate_demonstrations(
     from the rest posture to the catch posture, ``condition`` = hand position at the end (FK),
     ``cost`` = eq. 5. ``report``: provenance (``synthetic``, ``description``, ``citations``),
     counts, durations, region bounds, smallest limit margins, compile and wall time [s].
+    cache_parts: what `compile_cache.traced_program` keys the simulation by besides its
+      arguments (the config sections and robot model behind ``robot``, ``dyn`` and
+      ``settings``); None compiles it in this process only.
     Raises ``UserError`` when ``max_rounds`` rounds do not yield ``count`` valid trials.
     """
     t_start = time.perf_counter()
@@ -621,7 +629,13 @@ def generate_demonstrations(
         args = (jax.random.fold_in(k_rounds, rnd), target, prm, rob)
         if compiled is None:
             t0 = time.perf_counter()
-            compiled = _simulate.lower(dyn, settings.samples, settings.ik_iters, *args).compile()
+            statics = (dyn, settings.samples, settings.ik_iters)
+            if cache_parts is None:
+                compiled = _simulate.lower(*statics, *args).compile()
+            else:
+                program = jax.jit(functools.partial(_simulate, *statics))
+                parts = {"program": "demos._simulate", "parts": cache_parts}
+                compiled = compile_traced(program, args, parts)
             compile_s = time.perf_counter() - t0
         trials = _Trials(*(np.asarray(a) for a in jax.device_get(compiled(*args))))
         ok = _accept(trials, settings)

@@ -209,19 +209,26 @@ def _from_state_tree(tree: dict):
     return Database(**tree["db"]), conditions_from_tree(tree["conditions"]), int(tree["generation"])
 
 
-def cost_program(dyn, grid, rows: int):
+def cost_program(dyn, grid, rows: int, cache: Any = None):
     """``costs(q (n, T, J), duration (n,)) -> (eq. 5 cost (n,), Fig. 5 torque sum (n,))`` for any
     n <= ``rows``: one compiled program of ``rows`` trajectories (padded with resting ones) that
-    serves both the human costs and the human-only baseline of a run."""
+    serves both the human costs and the human-only baseline of a run. ``cache``:
+    `workflow.cache_parts` of the run, to keep the traced program across processes."""
     import jax
 
+    from evojax_motion.compile_cache import traced_program
     from evojax_motion.objective import cost_from_torques, torque_sum, trajectory_torques
 
     def one(q, d):
         tau = trajectory_torques(dyn, grid, q, d)
         return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
 
-    batch = jax.jit(exact_matmuls(jax.vmap(one)))
+    @jax.jit
+    @exact_matmuls
+    def trajectory_costs(q, d):
+        return jax.vmap(one)(q, d)
+
+    batch = trajectory_costs if cache is None else traced_program(trajectory_costs, cache)
 
     def costs(q, duration):
         n = q.shape[0]
@@ -274,15 +281,16 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     from evojax_motion.database import HUMAN, Database, nonfinite_rows
     from evojax_motion.evolution import init_evolved_slots
     from evojax_motion.timegrid import make_time_grid
-    from evojax_motion.workflow import build_demonstrations
+    from evojax_motion.workflow import cache_parts, demonstrations
 
     t0 = time.perf_counter()
-    humans, meta, _ = build_demonstrations(cfg, progress=progress)
+    parts = cache_parts(cfg, robot)
+    humans, meta = demonstrations(cfg, robot, dyn, parts)
     check_samples(cfg, humans.q.shape[1])
     keep = np.asarray(humans.valid) & (np.asarray(humans.origin) == HUMAN)
     humans = Database(*(np.asarray(a)[keep] for a in humans))
     grid = make_time_grid(humans.q.shape[1])
-    costs = cost_program(dyn, grid, max(humans.q.shape[0], cfg.evolution.conditions))
+    costs = cost_program(dyn, grid, max(humans.q.shape[0], cfg.evolution.conditions), parts)
     humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
     bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
     for i in bad:
@@ -292,7 +300,7 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
     t1 = time.perf_counter()
     key = jax.random.fold_in(jax.random.key(cfg.seed), CONDITIONS_STREAM)
-    conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key)
+    conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, parts)
     conditions = jax.tree_util.tree_map(np.asarray, conditions)
     db = _numpy_db(init_evolved_slots(humans, conditions))
     baseline = human_only_baseline(costs, conditions)
@@ -458,11 +466,11 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     step). On one device the traced program is kept with JAX's compilation cache when that is
     on (`compile_cache.compile_traced`), so a later process skips tracing it.
     """
-    from evojax_motion.compile_cache import compile_traced, model_digest
-    from evojax_motion.config import config_to_dict
+    from evojax_motion.compile_cache import compile_traced
     from evojax_motion.database import count_human
     from evojax_motion.parallel import resolve_devices, sharded_generation_step
     from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.workflow import cache_parts
 
     n_human = count_human(db)
     grid = make_time_grid(db.q.shape[1])
@@ -473,14 +481,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     args = (db, conditions, np.asarray(1, np.int32))  # the generation index is traced
     if len(resolve_devices(cfg.parallel.devices)) > 1:
         return step_fn.lower(*args).compile()
-    sections = config_to_dict(cfg)
-    sections["evolution"].pop("generations")  # how often the step runs, not what it is
-    parts = {
-        "program": "generation_step",
-        "config": {k: sections[k] for k in ("robot", "dynamics", "basis", "compiler", "evolution")},
-        "n_human": n_human,
-        "model": model_digest(robot.mj_model),
-    }
+    parts = {"program": "generation_step", "n_human": n_human, **cache_parts(cfg, robot)}
     return compile_traced(step_fn, args, parts, options)
 
 

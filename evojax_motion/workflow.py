@@ -7,11 +7,12 @@ same demonstration database.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
 
-from evojax_motion.config import Config
+from evojax_motion.config import Config, config_to_dict
 from evojax_motion.database import Database, DatabaseMeta, load_database
 from evojax_motion.dynamics import Dynamics, make_dynamics
 from evojax_motion.errors import UserError
@@ -38,31 +39,48 @@ def check_database_matches_robot(meta: DatabaseMeta, robot: Robot, where: str) -
         )
 
 
+def cache_parts(cfg: Config, robot: Robot) -> dict:
+    """What a run's compiled programs depend on besides their arguments, for the traced-program
+    cache (`compile_cache.compile_traced`): the config sections that shape them (robot,
+    dynamics, demos, basis, compiler, evolution without ``generations``) and the digest of the
+    robot's compiled MuJoCo model."""
+    from evojax_motion.compile_cache import model_digest
+
+    sections = config_to_dict(cfg)
+    sections["evolution"].pop("generations")  # how often the step runs, not what it is
+    names = ("robot", "dynamics", "demos", "basis", "compiler", "evolution")
+    return {"config": {k: sections[k] for k in names}, "model": model_digest(robot.mj_model)}
+
+
 def build_demonstrations(cfg: Config, progress: bool = True) -> tuple[Database, DatabaseMeta, dict]:
     """The human demonstration database of a config: ``demos_file`` if set, else synthetic ones.
 
     Returns ``(db, meta, report)``; ``report`` is the summary printed by the CLI.
     """
-    from evojax_motion.demos import generate_demonstrations, summarize_demonstrations
+    from evojax_motion.demos import summarize_demonstrations
 
     robot, dyn = make_robot_dynamics(cfg)
+    db, meta = demonstrations(cfg, robot, dyn)
+    return db, meta, summarize_demonstrations(db, robot)
+
+
+def demonstrations(
+    cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None
+) -> tuple[Database, DatabaseMeta]:
+    """``(db, meta)`` of `build_demonstrations` for the config's ``robot`` and ``dyn``, without
+    the summary. ``cache``: `cache_parts` of ``cfg``, to keep the synthesis's traced program
+    across processes (None: compiled in this process only)."""
+    from evojax_motion.demos import generate_demonstrations
+
     if cfg.demos_file is not None:
         db, meta = load_database(cfg.demos_file)
         check_database_matches_robot(meta, robot, cfg.demos_file)
         keep = np.asarray(db.valid) & (np.asarray(db.origin) == 0)
-        db = Database(*(np.asarray(a)[keep] for a in db))
-    else:
-        key = jax.random.key(cfg.demos.seed)
-        db, report = generate_demonstrations(robot, dyn, cfg.demos, key)
-        meta = DatabaseMeta(
-            robot_name=robot.name,
-            mjcf=robot.mjcf,
-            joint_names=tuple(robot.joint_names),
-            site_name=robot.site_name,
-            synthetic=True,
-            description=str(report.get("description", "synthetic human-like demonstrations")),
-        )
-    return db, meta, summarize_demonstrations(db, robot)
+        return Database(*(np.asarray(a)[keep] for a in db)), meta
+    key = jax.random.key(cfg.demos.seed)
+    db, report = generate_demonstrations(robot, dyn, cfg.demos, key, cache)
+    description = str(report.get("description", "synthetic human-like demonstrations"))
+    return db, DatabaseMeta.of_robot(robot, synthetic=True, description=description)
 
 
 def print_demo_summary(report: dict, path: Path | None = None) -> None:

@@ -114,6 +114,36 @@ def test_without_a_cache_directory_nothing_is_written(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def test_traced_program_names_its_function_and_takes_prng_keys(tmp_path):
+    """`traced_program`: one trace per signature and process, reused by a new wrapper of the same
+    function; another function with the same arguments and parts is another program; typed PRNG
+    keys are arguments like any other."""
+    traces = []
+
+    def noisy(key, x):
+        traces.append(1)
+        return x + jax.random.normal(key, x.shape)
+
+    def shifted(key, x):
+        traces.append(1)
+        return x + 1.0 + jax.random.normal(key, x.shape)
+
+    key, x = jax.random.key(7), np.zeros(3, np.float32)
+    want = np.asarray(jax.random.normal(key, (3,)))
+    with cache_at(tmp_path):
+        call = compile_cache.traced_program(jax.jit(noisy), "parts")
+        np.testing.assert_array_equal(np.asarray(call(key, x)), want)
+        np.testing.assert_array_equal(np.asarray(call(key, x)), want)  # compiled once: kept
+        assert len(traces) == 1
+        again = compile_cache.traced_program(jax.jit(noisy), "parts")  # as a new process would
+        np.testing.assert_array_equal(np.asarray(again(key, x)), want)
+        assert len(traces) == 1
+        other = compile_cache.traced_program(jax.jit(shifted), "parts")
+        np.testing.assert_array_equal(np.asarray(other(key, x)), want + 1.0)
+        assert len(traces) == 2
+    assert len(list((tmp_path / compile_cache.TRACED_DIR).glob("*.jaxexport"))) == 2
+
+
 def test_key_changes_with_parts_shapes_precision_and_x64():
     args = _args()
     key = compile_cache.program_key("p", args)

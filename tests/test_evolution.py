@@ -254,6 +254,54 @@ def test_conditions_are_reachable_human_like_and_rest_to_rest(small):
     np.testing.assert_allclose(cond.human_q[:, -1], b.qf, atol=TOL_BC_POS)
 
 
+# The IK of one candidate does not depend on which others share its batch (same program, rows
+# independent); a candidate's posture may still differ in the last bits between batch sizes.
+TOL_IK_BATCH = 1e-5  # [rad]
+
+
+@pytest.mark.slow
+def test_conditions_are_the_first_qualifying_candidates_in_key_order(small):
+    """The IK runs on m candidates at a time: the conditions must still be the first m candidates
+    in key order with enough neighbours and a reachable IK posture, as if all had been solved.
+    A copy of the demonstrations with their hand positions 0.6 m higher (out of reach) makes many
+    candidates miss the IK by centimetres, so that several batches are needed."""
+    import jax
+
+    from evojax_motion.conditions import _masked_mean, make_conditions, sampling_box
+    from evojax_motion.database import make_database
+    from evojax_motion.ik import solve_ik
+
+    robot, dyn, h, grid, basis = (small[k] for k in ("robot", "dyn", "humans", "grid", "basis"))
+    humans = make_database(
+        np.concatenate([h.q, h.q]),
+        np.concatenate([h.duration, h.duration]),
+        np.concatenate([h.condition, h.condition + np.float32([0.0, 0.0, 0.6])]),
+        cost=np.concatenate([h.cost, h.cost]),
+    )
+    per = 12
+    evo = EvolutionSettings(
+        conditions=M_COND, min_neighbours=2, candidates_per_condition=per, region_margin=0.0
+    )
+    key = jax.random.key(5)
+    cond = jax.tree_util.tree_map(
+        np.asarray, make_conditions(humans, dyn, robot, evo, basis, grid, key)
+    )
+    # reference: every candidate at once, the neighbours in numpy
+    lo, hi = sampling_box(humans, evo.region_margin)
+    cand = np.asarray(jax.random.uniform(key, (M_COND * per, 3), jnp.float32, lo, hi))
+    dist = np.linalg.norm(cand[:, None] - humans.condition[None], axis=-1)
+    order = np.argsort(dist, axis=1, kind="stable")[:, : basis.neighbours]
+    final = humans.q[order, -1]
+    mask = np.ones(order.shape, bool)
+    pref = _masked_mean(final, mask)
+    ik = solve_ik(dyn, cand, final[:, 0], robot.lower, robot.upper, q_pref=pref)
+    near = np.flatnonzero((dist <= basis.radius).sum(1) >= evo.min_neighbours)
+    first = near[np.asarray(ik.pos_error)[near] <= evo.ik_tolerance][:M_COND]
+    assert np.searchsorted(near, first[-1]) >= M_COND, "one batch sufficed: nothing tested"
+    np.testing.assert_array_equal(cond.target, cand[first])
+    np.testing.assert_allclose(cond.boundary.qf, np.asarray(ik.q)[first], atol=TOL_IK_BATCH)
+
+
 def test_conditions_refuse_impossible_settings():
     from evojax_motion.basis import BasisSettings
     from evojax_motion.conditions import make_conditions, sampling_box

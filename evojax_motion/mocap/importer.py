@@ -415,14 +415,7 @@ def import_trials(params: ImportParams) -> ImportResult:
             f"motion capture ({params.format}) of {len(rows)} trials retargeted to "
             f"{robot.name}: " + ", ".join(sorted({Path(r.path).parent.name for r in rows}))
         )
-        meta = DatabaseMeta(
-            robot_name=robot.name,
-            mjcf=robot.mjcf,
-            joint_names=tuple(robot.joint_names),
-            site_name=robot.site_name,
-            synthetic=False,
-            description=desc[:2000],
-        )
+        meta = DatabaseMeta.of_robot(robot, synthetic=False, description=desc[:2000])
     for r in reports:
         if r.status != "imported":
             r.status = "skipped"
