@@ -68,7 +68,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from evojax_motion.basis import Basis, small_eigh, small_svd
 from evojax_motion.compile_interp import (
@@ -564,6 +563,8 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
 
 def _adam(fun, z0, free, settings: OptimSettings) -> _Result:
     """``max_iters`` steps of plain ``optax.adam`` (the projected-gradient baseline), batched."""
+    import optax  # here: a run whose traced step is cached never needs it (0.15 s of imports)
+
     opt = optax.adam(settings.learning_rate)
     b = z0.shape[0]
 
@@ -583,6 +584,8 @@ def _adam(fun, z0, free, settings: OptimSettings) -> _Result:
 
 def _lbfgs(fun, z0, free, settings: OptimSettings) -> _Result:
     """``optax.lbfgs`` with its zoom line search; stops on the gradient norm or the budget."""
+    import optax
+
     opt = optax.lbfgs()
     b = z0.shape[0]
 
