@@ -16,6 +16,8 @@ if _OWN_CACHE:
 if "EVOJAX_TEST_XLA_CACHE" in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["EVOJAX_TEST_XLA_CACHE"]
     os.environ["EVOJAX_MOTION_JAX_CACHE"] = os.environ["EVOJAX_TEST_XLA_CACHE"]
+    # every program, not only those that took >= 1 s to compile (as the command line does)
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 
 import jax  # noqa: E402  (after the environment above)
 import pytest  # noqa: E402

@@ -155,18 +155,18 @@ def test_expected_inputs_match_the_initial_state(tmp_path):
     typed as what `initial_state` returns, every run would compile it twice, silently."""
     from evojax_motion.compile_cache import signature
     from evojax_motion.config import config_from_dict, config_to_dict, load_config
-    from evojax_motion.database import save_database
+    from evojax_motion.database import humans_only, save_database
     from evojax_motion.train import expected_inputs, initial_state
-    from evojax_motion.workflow import build_demonstrations, make_robot_dynamics
+    from evojax_motion.workflow import make_robot_dynamics
 
     cfg = load_config(TINY)
     robot, dyn = make_robot_dynamics(cfg)
-    db, conditions, *_ = initial_state(cfg, robot, dyn, progress=False)
+    db, conditions, meta, *_ = initial_state(cfg, robot, dyn, progress=False)
     actual = signature((db, conditions))
     assert signature(expected_inputs(cfg, robot)) == actual
 
-    humans, meta, _ = build_demonstrations(cfg, progress=False)  # recorded data: from a file
-    save_database(tmp_path / "demos.npz", humans, meta)
+    # recorded data: the same demonstrations from a file (evolved slots empty: not read back)
+    save_database(tmp_path / "demos.npz", humans_only(db), meta)
     from_file = config_from_dict(config_to_dict(cfg), [f"demos_file={tmp_path / 'demos.npz'}"])
     assert signature(expected_inputs(from_file, robot)) == actual
     missing = config_from_dict(config_to_dict(cfg), [f"demos_file={tmp_path / 'none.npz'}"])
