@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from evojax_motion.compile_cache import compile_traced
+from evojax_motion import compile_cache
 from evojax_motion.database import HUMAN, Database, make_database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
@@ -635,7 +635,7 @@ def generate_demonstrations(
             else:
                 program = jax.jit(functools.partial(_simulate, *statics))
                 parts = {"program": "demos._simulate", "parts": cache_parts}
-                compiled = compile_traced(program, args, parts)
+                compiled = compile_cache.compile_traced(program, args, parts)
             compile_s = time.perf_counter() - t0
         trials = _Trials(*(np.asarray(a) for a in jax.device_get(compiled(*args))))
         ok = _accept(trials, settings)

@@ -150,18 +150,46 @@ def tiny_run(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_expected_inputs_match_the_initial_state(tmp_path):
-    """The generation step is compiled early for `expected_inputs`; were they not shaped and
-    typed as what `initial_state` returns, every run would compile it twice, silently."""
+def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
+    tmp_path, monkeypatch
+):
+    """A second setup of the same config compiles every setup program (synthesis, costs, the
+    condition draw's three stages) from the traced programs of the first one, tracing none (a
+    key with anything unstable in it would retrace, silently slower), and gives the same state.
+    The generation step is compiled early for `expected_inputs`; were they not shaped and typed
+    as what `initial_state` returns, every run would compile it twice, silently."""
+    import jax
+
+    from evojax_motion import compile_cache
     from evojax_motion.compile_cache import signature
     from evojax_motion.config import config_from_dict, config_to_dict, load_config
     from evojax_motion.database import humans_only, save_database
     from evojax_motion.train import expected_inputs, initial_state
     from evojax_motion.workflow import make_robot_dynamics
 
+    assert compile_cache.traced_cache_dir() is not None  # conftest's session cache
     cfg = load_config(TINY)
     robot, dyn = make_robot_dynamics(cfg)
     db, conditions, meta, *_ = initial_state(cfg, robot, dyn, progress=False)
+    calls = {"compile_traced": 0, "export": 0}
+
+    def counted(name, fn):
+        def wrapper(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+
+        return wrapper
+
+    monkeypatch.setattr(
+        compile_cache, "compile_traced", counted("compile_traced", compile_cache.compile_traced)
+    )
+    monkeypatch.setattr(jax.export, "export", counted("export", jax.export.export))
+    again, conditions_again, *_ = initial_state(cfg, robot, dyn, progress=False)
+    monkeypatch.undo()
+    assert calls == {"compile_traced": 5, "export": 0}
+    for a, b in zip(jax.tree_util.tree_leaves((db, conditions)),
+                    jax.tree_util.tree_leaves((again, conditions_again)), strict=True):  # fmt: skip
+        np.testing.assert_array_equal(a, b)
     actual = signature((db, conditions))
     assert signature(expected_inputs(cfg, robot)) == actual
 
