@@ -329,6 +329,8 @@ def main(argv=None) -> None:
     p.add_argument("--tag", default="", help="suffix of the JSON name (default: platform)")
     p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args(argv)
+    if args.warm_runs < 1:
+        p.error(f"--warm-runs: expected an integer >= 1, got {args.warm_runs}")
     result = {"machine": machine_info(), "config": args.config, "overrides": args.set,
               "sweep": [], "demos_from_file": args.demos_from_file}  # fmt: skip
     if args.first_generation_only:
