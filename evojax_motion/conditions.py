@@ -29,7 +29,7 @@ import numpy as np
 from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
 from evojax_motion.compile_cache import traced_program
 from evojax_motion.compile_interp import Boundary, compile_interpolation
-from evojax_motion.database import HUMAN, Database
+from evojax_motion.database import Database, human_mask
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.ik import solve_ik
@@ -53,11 +53,6 @@ class Conditions(NamedTuple):
     ik_error: jnp.ndarray
     n_human_inside: jnp.ndarray
     human_q: jnp.ndarray
-
-
-def human_mask(db: Database) -> np.ndarray:
-    """``(N,)`` valid human demonstrations."""
-    return np.asarray(db.valid) & (np.asarray(db.origin) == HUMAN)
 
 
 def sampling_box(db: Database, margin: float) -> tuple[np.ndarray, np.ndarray]:

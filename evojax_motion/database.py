@@ -103,6 +103,11 @@ def make_database(q, duration, condition, cost=None, capacity: int | None = None
     )
 
 
+def human_mask(db: Database) -> np.ndarray:
+    """``(N,)`` valid human demonstrations."""
+    return np.asarray(db.valid) & (np.asarray(db.origin) == HUMAN)
+
+
 def count_human(db: Database) -> int:
     """Rows of human origin: the human part of an evolving database comes first, so its evolved
     slots start at this index."""
@@ -111,7 +116,7 @@ def count_human(db: Database) -> int:
 
 def humans_only(db: Database) -> Database:
     """The same arrays with every evolved entry masked out (``valid=False``)."""
-    return db._replace(valid=np.asarray(db.valid) & (np.asarray(db.origin) == HUMAN))
+    return db._replace(valid=human_mask(db))
 
 
 def nonfinite_rows(db: Database) -> np.ndarray:

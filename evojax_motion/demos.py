@@ -50,7 +50,7 @@ import mujoco
 import numpy as np
 
 from evojax_motion import compile_cache
-from evojax_motion.database import HUMAN, Database, make_database
+from evojax_motion.database import Database, human_mask, make_database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.ik import solve_ik_trajectory
@@ -714,7 +714,7 @@ def summarize_demonstrations(db: Database, robot: Robot) -> dict:
     count, duration min/max/mean [s], catch (final hand position) bounds [m], smallest joint-limit
     margin per joint [deg], largest joint speed at the two ends [rad/s], mean cost (eq. 5).
     """
-    keep = np.asarray(db.valid) & (np.asarray(db.origin) == HUMAN)
+    keep = human_mask(db)
     if not keep.any():
         raise UserError("demonstrations: expected at least one valid human primitive, got none")
     q = np.asarray(db.q)[keep]

@@ -278,17 +278,15 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     import jax
 
     from evojax_motion.conditions import make_conditions
-    from evojax_motion.database import HUMAN, Database, nonfinite_rows
+    from evojax_motion.database import Database, nonfinite_rows
     from evojax_motion.evolution import init_evolved_slots
     from evojax_motion.timegrid import make_time_grid
     from evojax_motion.workflow import cache_parts, demonstrations
 
     t0 = time.perf_counter()
     parts = cache_parts(cfg, robot)
-    humans, meta = demonstrations(cfg, robot, dyn, parts)
+    humans, meta = demonstrations(cfg, robot, dyn, parts)  # valid human rows only
     check_samples(cfg, humans.q.shape[1])
-    keep = np.asarray(humans.valid) & (np.asarray(humans.origin) == HUMAN)
-    humans = Database(*(np.asarray(a)[keep] for a in humans))
     grid = make_time_grid(humans.q.shape[1])
     costs = cost_program(dyn, grid, max(humans.q.shape[0], cfg.evolution.conditions), parts)
     humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
@@ -495,8 +493,8 @@ def expected_inputs(cfg: Config, robot):
     before the demonstrations are made (their count: ``demos.count``, or the valid human rows of
     ``demos_file``); None when the file cannot be read (`initial_state` then says why).
     A demonstration dropped as non-finite makes the real shapes differ: compare before use."""
-    from evojax_motion.conditions import conditions_from_tree, conditions_template, human_mask
-    from evojax_motion.database import load_database, make_database
+    from evojax_motion.conditions import conditions_from_tree, conditions_template
+    from evojax_motion.database import human_mask, load_database, make_database
 
     if cfg.demos_file is None:
         n, t = cfg.demos.count, cfg.demos.samples

@@ -13,7 +13,7 @@ import jax
 import numpy as np
 
 from evojax_motion.config import Config, config_to_dict
-from evojax_motion.database import Database, DatabaseMeta, load_database
+from evojax_motion.database import Database, DatabaseMeta, human_mask, load_database
 from evojax_motion.dynamics import Dynamics, make_dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.robot import Robot, load_robot
@@ -68,14 +68,14 @@ def demonstrations(
     cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None
 ) -> tuple[Database, DatabaseMeta]:
     """``(db, meta)`` of `build_demonstrations` for the config's ``robot`` and ``dyn``, without
-    the summary. ``cache``: `cache_parts` of ``cfg``, to keep the synthesis's traced program
-    across processes (None: compiled in this process only)."""
+    the summary: the valid human rows only. ``cache``: `cache_parts` of ``cfg``, to keep the
+    synthesis's traced program across processes (None: compiled in this process only)."""
     from evojax_motion.demos import generate_demonstrations
 
     if cfg.demos_file is not None:
         db, meta = load_database(cfg.demos_file)
         check_database_matches_robot(meta, robot, cfg.demos_file)
-        keep = np.asarray(db.valid) & (np.asarray(db.origin) == 0)
+        keep = human_mask(db)
         return Database(*(np.asarray(a)[keep] for a in db)), meta
     key = jax.random.key(cfg.demos.seed)
     db, report = generate_demonstrations(robot, dyn, cfg.demos, key, cache)
