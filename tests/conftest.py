@@ -21,6 +21,13 @@ if "EVOJAX_TEST_XLA_CACHE" in os.environ:
 
 import jax  # noqa: E402  (after the environment above)
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+# Property tests draw the same examples on every run (a CI failure is then reproducible, never a
+# coincidence of the draw); `HYPOTHESIS_PROFILE=explore pytest ...` draws new ones each run.
+settings.register_profile("repeatable", derandomize=True, database=None)
+settings.register_profile("explore")
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
 if "EVOJAX_TEST_XLA_CACHE" in os.environ:  # in case a plugin imported jax before this file
     jax.config.update("jax_compilation_cache_dir", os.environ["EVOJAX_TEST_XLA_CACHE"])
