@@ -49,7 +49,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402  (one definition for all benchmarks)
 
-from evojax_motion.basis import pca_basis, select_neighbours  # noqa: E402
+from evojax_motion import evolution  # noqa: E402
+from evojax_motion.basis import pca_basis, select_neighbours, select_neighbours_among  # noqa: E402
 from evojax_motion.compile_optim import make_optimisation_compiler  # noqa: E402
 from evojax_motion.config import config_from_dict, config_to_dict, load_config  # noqa: E402
 from evojax_motion.timegrid import make_time_grid  # noqa: E402
@@ -72,6 +73,19 @@ def build(cfg, conditions: int):
     return cfg, robot, dyn, db, conds
 
 
+def exact_lists(cfg, db, conds, valid: list) -> list[float] | None:
+    """Per generation, the fraction of conditions whose candidate lists vouched for their
+    neighbours in the database it read (`basis.select_neighbours_among`); the step searches the
+    whole database in a generation where one does not. None without lists."""
+    if conds.candidates is None:
+        return None
+    b = cfg.basis
+    among = jax.jit(lambda v: select_neighbours_among(
+        db.condition, v, conds.target, conds.candidates, b.neighbours, b.radius, b.w_pos
+    )[1].mean())  # fmt: skip
+    return [float(among(v)) for v in valid]
+
+
 def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
     """Compile the generation step ahead of time (as `train` does: with JAX's persistent cache on,
     the traced program is reused too), then time ``generations`` generations."""
@@ -80,8 +94,9 @@ def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
     compile_s = time.perf_counter() - t0
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
-    seconds, costs = [], []
+    seconds, costs, valid = [], [], []
     for g in range(1, generations + 1):
+        valid.append(db.valid)
         t0 = time.perf_counter()
         db, stats = compiled(db, conds, np.asarray(g, np.int32))
         jax.block_until_ready(db)
@@ -98,6 +113,8 @@ def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
         "generations_per_s": 1.0 / float(np.median(later)),
         "seconds": seconds,
         "db_cost_mean": costs,
+        "search": "whole database" if conds.candidates is None else "candidate lists",
+        "exact_lists": exact_lists(cfg, db, conds, valid),
         "flops_per_generation": float((cost or {}).get("flops", float("nan"))),
         "peak_memory_bytes": peak_memory_bytes(),
     }
@@ -258,14 +275,19 @@ def markdown(result: dict) -> str:
     if result["sweep"]:
         lines += [
             "",
-            "| conditions | T | compile s | s / generation | generations / s | peak MiB |",
-            "|---:|---:|---:|---:|---:|---:|",
+            "| conditions | T | compile s | s / generation | generations / s | peak MiB | "
+            "neighbour search |",
+            "|---:|---:|---:|---:|---:|---:|---|",
         ]
     for r in result["sweep"]:
+        lists = r.get("exact_lists")
+        search = r.get("search", "whole database")
+        if lists:  # the timed generations: 2.. (1 fills the empty slots)
+            search += ", exact " + " / ".join(f"{100 * x:.1f} %" for x in lists[1:] or lists)
         lines.append(
             f"| {r['conditions']} | {r['samples']} | {r['compile_s']:.1f} | "
             f"{r['seconds_per_generation']:.4g} | {r['generations_per_s']:.3g} | "
-            f"{r['peak_memory_bytes'] / 2**20:.0f} |"
+            f"{r['peak_memory_bytes'] / 2**20:.0f} | {search} |"
         )
     if "gap" in result:
         g = result["gap"]
@@ -326,6 +348,12 @@ def main(argv=None) -> None:
         metavar="KEY=VALUE",
         help="config override, e.g. compiler.method=bfgs (repeatable)",
     )
+    p.add_argument(
+        "--whole-search",
+        action="store_true",
+        help="search each condition's neighbours in the whole database at every size "
+        "(default: candidate lists from evolution.SEARCH_CANDIDATES_MIN_CONDITIONS conditions)",
+    )
     p.add_argument("--tag", default="", help="suffix of the JSON name (default: platform)")
     p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args(argv)
@@ -341,6 +369,8 @@ def main(argv=None) -> None:
         return
 
     cfg = load_config(args.config, args.set)
+    if args.whole_search:
+        evolution.SEARCH_CANDIDATES_MIN_CONDITIONS = sys.maxsize
     counts = [int(x) for x in args.sweep_conditions.split(",") if x] or [args.conditions]
     paper = None
     for c in counts:

@@ -150,8 +150,9 @@ def condition_distance(
     ``target_rotation: (C, 3, 3)`` are used when both are given and ``w_rot > 0``.
     """
     diff = targets[:, None, :] - condition[None, :, :]
-    # sqrt of a sum with a floor: the gradient stays finite at zero distance.
-    d = w_pos * jnp.sqrt(jnp.maximum(jnp.sum(diff**2, axis=-1), 0.0))
+    # No floor on the sum of squares (it is >= 0): jnp.maximum(NaN, 0.0) is 0.0 in XLA's
+    # vectorised CPU code, which gave a NaN target distance 0 to every entry under jit.
+    d = w_pos * jnp.sqrt(jnp.sum(diff**2, axis=-1))
     if rotation is not None and target_rotation is not None and w_rot > 0:
         d = d + w_rot * rotation_distance(target_rotation[:, None], rotation[None, :])
     return d
@@ -219,6 +220,82 @@ def select_neighbours(
         n_inside=n_inside,
         short=n_inside < k,
     )
+
+
+def neighbour_candidates(
+    condition: jnp.ndarray,
+    valid: jnp.ndarray,
+    n_fixed: int,
+    targets: jnp.ndarray,
+    k: int,
+    extra: int,
+    w_pos: float = 1.0,
+) -> jnp.ndarray:
+    """Candidate lists for `select_neighbours_among`: ``(C, k + extra)`` int32 database rows.
+
+    Per target: its k nearest valid rows among the first ``n_fixed`` (rows whose validity never
+    changes: the human originals), nearest first; then its ``extra`` nearest rows with a finite
+    condition after them (the evolved slots, filled or not), nearest first. Where there are fewer,
+    the list is filled with ``N`` (one past the last row). ``condition: (N, 3)``, ``valid: (N,)``,
+    ``targets: (C, 3)``; ``n_fixed``, ``k``, ``extra`` static. The search is `select_neighbours`'
+    (position only): quadratic in the conditions, so it is made once, not per generation.
+    """
+    n = condition.shape[0]
+    fixed = select_neighbours(condition[:n_fixed], valid[:n_fixed], targets, k, jnp.inf, w_pos)
+    rest = select_neighbours(
+        condition[n_fixed:], jnp.ones(n - n_fixed, bool), targets, extra, jnp.inf, w_pos
+    )
+    return jnp.concatenate(
+        [jnp.where(fixed.mask, fixed.index, n), jnp.where(rest.mask, rest.index + n_fixed, n)],
+        axis=1,
+    ).astype(jnp.int32)
+
+
+def select_neighbours_among(
+    condition: jnp.ndarray,
+    valid: jnp.ndarray,
+    targets: jnp.ndarray,
+    candidates: jnp.ndarray,
+    k: int,
+    radius: float,
+    w_pos: float = 1.0,
+) -> tuple[Neighbours, jnp.ndarray]:
+    """`select_neighbours` (position only) searching only each target's candidate list: linear,
+    not quadratic, in the conditions. Returns ``(neighbours, exact (C,) bool)``.
+
+    ``candidates: (C, k + L)`` from `neighbour_candidates` over the same rows, whose fixed rows
+    have not changed validity since. Rows outside a list are fixed rows farther than the list's k
+    nearest (``valid`` at this call: the k nearest valid fixed rows are in the list) or other rows
+    at least as far as the list's last one, so the k nearest valid rows of the list are those of
+    the whole database (``exact``) when the k-th is nearer than that last row, when the list holds
+    every other finite row, or for a non-finite target (no neighbour either way). Where ``exact``,
+    ``index`` (where ``mask``), ``mask``, ``distance`` and ``short`` equal `select_neighbours`';
+    ``n_inside`` counts the list's rows only (which decides ``short`` exactly); masked ``index``
+    entries are 0.
+    """
+    n = condition.shape[0]
+    pts = jnp.take(condition, candidates, axis=0, mode="fill", fill_value=jnp.nan)  # (C, L, 3)
+    ok = jnp.take(valid, candidates, axis=0, mode="fill", fill_value=False)
+
+    def one(p, tgt):
+        return condition_distance(p, tgt[None], w_pos)[0]
+
+    raw = jax.vmap(one)(pts, targets)  # (C, L), NaN at the fillers
+    usable = ok & jnp.isfinite(raw)
+    d = jnp.where(usable, raw, jnp.inf)
+    neg, pos = jax.lax.top_k(-d, k)
+    dist = -neg
+    mask = jnp.isfinite(dist)
+    index = jnp.where(mask, jnp.take_along_axis(candidates, pos, axis=1), 0)
+    everything = candidates[:, -1] >= n  # a filler: the list holds every other finite row
+    no_target = ~jnp.all(jnp.isfinite(targets), axis=-1)
+    exact = (dist[:, k - 1] < raw[:, -1]) | everything | no_target
+    n_inside = jnp.sum(usable & (d <= radius), axis=1).astype(jnp.int32)
+    nb = Neighbours(
+        index=index.astype(jnp.int32), mask=mask, distance=dist, n_inside=n_inside,
+        short=n_inside < k,
+    )  # fmt: skip
+    return nb, exact
 
 
 # Symmetric eigenproblems up to this size are solved by `jacobi_eigh` (elementwise code, batched

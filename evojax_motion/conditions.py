@@ -46,13 +46,16 @@ INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant
 class Conditions(NamedTuple):
     """m conditions. ``target (m, 3)`` [m], ``boundary`` (``q0, qf, qd0, qdf (m, J)``,
     ``duration (m,)``), ``ik_error (m,)`` [m] of ``qf``, ``n_human_inside (m,)`` demonstrations
-    within the basis radius, ``human_q (m, T, J)`` human-only interpolation (eq. 1-2)."""
+    within the basis radius, ``human_q (m, T, J)`` human-only interpolation (eq. 1-2);
+    ``candidates (m, k + L)`` or None: the neighbour search's candidate lists in the run's
+    database (`evolution.with_search_candidates`; derived, so not checkpointed)."""
 
     target: jnp.ndarray
     boundary: Boundary
     ik_error: jnp.ndarray
     n_human_inside: jnp.ndarray
     human_q: jnp.ndarray
+    candidates: jnp.ndarray | None = None
 
 
 def sampling_box(db: Database, margin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -181,8 +184,9 @@ def make_conditions(
 
 
 def conditions_to_tree(c: Conditions) -> dict:
-    """Plain nested dict of numpy arrays (checkpoints)."""
-    out: dict[str, Any] = {k: np.asarray(v) for k, v in c._asdict().items() if k != "boundary"}
+    """Plain nested dict of numpy arrays (checkpoints); without the derived ``candidates``."""
+    skip = ("boundary", "candidates")
+    out: dict[str, Any] = {k: np.asarray(v) for k, v in c._asdict().items() if k not in skip}
     out["boundary"] = {k: np.asarray(v) for k, v in c.boundary._asdict().items()}
     return out
 

@@ -21,7 +21,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.basis import (
+    BasisSettings,
+    neighbour_candidates,
+    pca_basis,
+    select_neighbours,
+    select_neighbours_among,
+)
 from evojax_motion.compile_optim import (
     OptimSettings,
     cpu_fast_path,
@@ -217,6 +223,71 @@ def rms_deviation_deg(q, q_ref):
     return jnp.degrees(jnp.sqrt(jnp.mean((q - q_ref) ** 2, axis=(1, 2))))
 
 
+# Conditions from which the generation step searches neighbours among candidate lists made once
+# per run (`with_search_candidates`), not the whole database: the whole search is m x (n_human +
+# m) distances, 8 ms of a 191 ms generation at 10,000 conditions and 228 ms of 2.33 s at 100,000
+# (H100, docs/scaling.md); at the paper's 300 it is negligible and the step stays as it was.
+SEARCH_CANDIDATES_MIN_CONDITIONS = 2048
+# Evolved slots per list, per neighbour: a list stays exact while k of them are filled or nearer.
+CANDIDATE_SLOTS_PER_NEIGHBOUR = 4
+
+
+def with_search_candidates(
+    db: Database,
+    conditions,
+    basis_settings: BasisSettings,
+    min_conditions: int | None = None,
+    placeholder: bool = False,
+):
+    """``conditions`` with their neighbour-search candidate lists in ``db`` (``candidates``,
+    `basis.neighbour_candidates`: the k nearest human rows and the ``4 k`` nearest evolved
+    slots of each condition), when there are at least ``min_conditions`` conditions (default
+    `SEARCH_CANDIDATES_MIN_CONDITIONS`); else ``conditions`` unchanged (the step then searches
+    the whole database).
+
+    ``db``: of capacity ``n_human + m`` (`init_evolved_slots`); its slot conditions never
+    change, nor do its human rows, so the lists hold for every generation of the run. The step's
+    search is exact either way (`search_neighbours`). ``placeholder``: zeros of the right shape
+    (the step's expected inputs, before the database exists). Returns numpy arrays.
+    """
+    from evojax_motion.database import count_human
+
+    m = conditions.target.shape[0]
+    if m < (SEARCH_CANDIDATES_MIN_CONDITIONS if min_conditions is None else min_conditions):
+        return conditions
+    k = basis_settings.neighbours
+    width = k + CANDIDATE_SLOTS_PER_NEIGHBOUR * k
+    if placeholder:
+        return conditions._replace(candidates=np.zeros((m, width), np.int32))
+    find = jax.jit(neighbour_candidates, static_argnums=(2, 4, 5, 6))
+    cand = find(
+        jnp.asarray(db.condition), jnp.asarray(db.valid), count_human(db),
+        jnp.asarray(conditions.target), k, width - k, basis_settings.w_pos,
+    )  # fmt: skip
+    return conditions._replace(candidates=np.asarray(cand))
+
+
+def search_neighbours(db: Database, conditions, basis_settings: BasisSettings):
+    """Eq. 6 neighbours of every condition in ``db`` (`basis.Neighbours`, position only).
+
+    With ``conditions.candidates`` (`with_search_candidates`): among the lists, and in the
+    whole database (one ``lax.cond``) only when some list cannot vouch for its answer (early
+    generations, whose slots are still empty); the same neighbours either way.
+    """
+    s = basis_settings
+    cond, valid = jnp.asarray(db.condition), jnp.asarray(db.valid)
+
+    def whole(_=None):
+        return select_neighbours(cond, valid, conditions.target, s.neighbours, s.radius, s.w_pos)
+
+    if conditions.candidates is None:
+        return whole()
+    nb, exact = select_neighbours_among(
+        cond, valid, conditions.target, conditions.candidates, s.neighbours, s.radius, s.w_pos
+    )
+    return jax.lax.cond(jnp.all(exact), lambda _: nb, whole, None)
+
+
 def make_generation_step(*args, **kwargs):
     """One generation as one jitted function ``step(db, conditions, generation)``; arguments
     as `generation_step` (``dyn, grid, lower, upper, n_human, basis_settings, optim_settings,
@@ -266,14 +337,7 @@ def generation_step(
     n_components = optim_settings.n_components
 
     def step(db: Database, conditions, generation):
-        nb = select_neighbours(
-            jnp.asarray(db.condition),
-            jnp.asarray(db.valid),
-            conditions.target,
-            basis_settings.neighbours,
-            basis_settings.radius,
-            basis_settings.w_pos,
-        )
+        nb = search_neighbours(db, conditions, basis_settings)
         basis = pca_basis(jnp.asarray(db.q), jnp.asarray(db.duration), nb, n_components)
         off = compile_opt(basis, conditions.boundary)
 

@@ -279,7 +279,7 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
 
     from evojax_motion.conditions import make_conditions
     from evojax_motion.database import Database, nonfinite_rows
-    from evojax_motion.evolution import init_evolved_slots
+    from evojax_motion.evolution import init_evolved_slots, with_search_candidates
     from evojax_motion.timegrid import make_time_grid
     from evojax_motion.workflow import cache_parts, demonstrations
 
@@ -301,6 +301,7 @@ def initial_state(cfg: Config, robot, dyn, progress: bool = True):
     conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, parts)
     conditions = jax.tree_util.tree_map(np.asarray, conditions)
     db = _numpy_db(init_evolved_slots(humans, conditions))
+    conditions = with_search_candidates(db, conditions, cfg.basis)
     baseline = human_only_baseline(costs, conditions)
     timings = {"demos_seconds": t1 - t0, "conditions_seconds": time.perf_counter() - t1}
     return db, conditions, meta, baseline, timings
@@ -377,6 +378,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
         from evojax_motion import checkpoint as ck
         from evojax_motion.database import save_database
+        from evojax_motion.evolution import with_search_candidates
 
         restored, problems, manager, early_step = None, [], None, None
         if resuming:
@@ -385,6 +387,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         timings: dict = {}
         if restored is not None:
             db, conditions, start = _from_state_tree(restored.state)
+            conditions = with_search_candidates(db, conditions, cfg.basis)
             meta = meta_of(out)
             metrics = [dict(r) for r in restored.meta.get("metrics", [])][:start]
             baseline = dict(restored.meta.get("baseline", {}))
@@ -495,6 +498,7 @@ def expected_inputs(cfg: Config, robot):
     A demonstration dropped as non-finite makes the real shapes differ: compare before use."""
     from evojax_motion.conditions import conditions_from_tree, conditions_template
     from evojax_motion.database import human_mask, load_database, make_database
+    from evojax_motion.evolution import with_search_candidates
 
     if cfg.demos_file is None:
         n, t = cfg.demos.count, cfg.demos.samples
@@ -506,7 +510,8 @@ def expected_inputs(cfg: Config, robot):
         n, t = int(human_mask(file_db).sum()), file_db.q.shape[1]
     j, m = len(robot.joint_names), cfg.evolution.conditions
     humans = make_database(np.zeros((n, t, j)), np.ones(n), np.zeros((n, 3)), capacity=n + m)
-    return humans, conditions_from_tree(conditions_template(m, t, j))
+    conditions = conditions_from_tree(conditions_template(m, t, j))
+    return humans, with_search_candidates(humans, conditions, cfg.basis, placeholder=True)
 
 
 def _compile_early(cfg: Config, robot, dyn):

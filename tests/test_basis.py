@@ -1,5 +1,7 @@
 """Neighbour selection (eq. 6) and the masked per-joint PCA basis against numpy references."""
 
+from types import SimpleNamespace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,9 +15,11 @@ from evojax_motion.basis import (
     gram_svd,
     jacobi_eigh,
     jacobi_svd,
+    neighbour_candidates,
     pca_basis,
     rotation_distance,
     select_neighbours,
+    select_neighbours_among,
     small_eigh,
     small_svd,
     validate_neighbour_database,
@@ -100,6 +104,12 @@ def test_neighbours_with_few_valid_entries_are_masked(data):
     assert nb.index.shape == (C, 6)
     assert not np.asarray(nb.mask)[0].any()
     assert (np.asarray(nb.mask)[1:].sum(axis=1) == 4).all()
+    # ... under jit too, among enough targets for XLA to vectorise the distances
+    many = np.concatenate([targets] * 50)
+    many[-1] = np.nan
+    jitted = jax.jit(select_neighbours, static_argnums=(3,))
+    nb = jitted(jnp.asarray(cond), jnp.ones(N, bool), jnp.asarray(many), 5, 0.1)
+    assert not np.asarray(nb.mask)[-1].any() and int(nb.n_inside[-1]) == 0
     # A NaN condition in the database is never selected.
     bad = cond.copy()
     bad[0] = np.nan
@@ -120,6 +130,55 @@ def test_blocked_neighbour_search_equals_one_block(data, monkeypatch):
     for name in ("index", "mask", "n_inside", "short"):
         np.testing.assert_array_equal(getattr(whole, name), getattr(blocks, name))
     np.testing.assert_allclose(whole.distance, blocks.distance, rtol=1e-6)  # vectorised sums
+
+
+def _run_like_database(rng, n_fixed, m, filled):
+    """Conditions of a run's database: ``n_fixed`` human rows (valid), then one slot per target
+    condition (a fraction ``filled`` valid); the targets are the slots' conditions and a NaN."""
+    cond = rng.uniform(-0.3, 0.3, (n_fixed + m, 3)).astype(np.float32)
+    valid = np.concatenate([np.ones(n_fixed, bool), rng.random(m) < filled])
+    targets = np.concatenate([cond[n_fixed:], np.full((1, 3), np.nan, np.float32)])
+    return jnp.asarray(cond), jnp.asarray(valid), jnp.asarray(targets)
+
+
+@pytest.mark.parametrize("filled", [0.7, 0.05])
+def test_neighbours_among_candidates_equal_the_whole_search_where_exact(filled):
+    """Candidate lists (the k nearest human rows and 4 k nearest slots, made once) give the
+    whole database's neighbours wherever they report ``exact``: nearly everywhere with most
+    slots filled (a run's later generations), not everywhere with few (its first)."""
+    from evojax_motion.evolution import search_neighbours
+
+    k, n_fixed, m, radius = 5, 30, 300, 0.1
+    cond, valid, targets = _run_like_database(np.random.default_rng(1), n_fixed, m, filled)
+    cand = jax.jit(neighbour_candidates, static_argnums=(2, 4, 5))(
+        cond, valid, n_fixed, targets, k, 4 * k
+    )
+    whole = select_neighbours(cond, valid, targets, k, radius)
+    among, exact = select_neighbours_among(cond, valid, targets, cand, k, radius)
+    exact = np.asarray(exact)
+    assert exact[-1]  # the NaN target: no neighbour either way
+    if filled > 0.5:
+        assert exact.mean() > 0.95, exact.mean()
+    else:
+        assert 0.05 < exact.mean() < 0.95, exact.mean()  # both branches are checked below
+    mask = np.asarray(whole.mask)
+    np.testing.assert_array_equal(np.asarray(among.mask)[exact], mask[exact])
+    np.testing.assert_array_equal(
+        np.where(mask, np.asarray(among.index), -1)[exact], np.where(mask, whole.index, -1)[exact]
+    )
+    np.testing.assert_array_equal(
+        np.asarray(among.distance)[exact], np.asarray(whole.distance)[exact]
+    )
+    np.testing.assert_array_equal(np.asarray(among.short)[exact], np.asarray(whole.short)[exact])
+    assert (np.asarray(among.n_inside) <= np.asarray(whole.n_inside)).all()
+    # what the generation step uses: the lists where every one is exact, else the whole search
+    db = SimpleNamespace(condition=cond, valid=valid)
+    conditions = SimpleNamespace(target=targets, candidates=cand)
+    used = search_neighbours(db, conditions, BasisSettings(radius=radius, neighbours=k))
+    for name in ("index", "mask", "distance"):
+        got, want = np.asarray(getattr(used, name)), np.asarray(getattr(whole, name))
+        np.testing.assert_array_equal(np.where(mask, got, 0), np.where(mask, want, 0), name)
+    np.testing.assert_array_equal(np.asarray(used.short), np.asarray(whole.short))
 
 
 def test_orientation_term():

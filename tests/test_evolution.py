@@ -361,6 +361,37 @@ def test_generation_step_rejects_selects_and_keeps_humans(small):
     assert set(gen[v2]) <= {1, 2} and (gen[~v2] == 0).all()
 
 
+@pytest.mark.slow
+def test_generation_step_with_search_candidates_is_the_same_generation(small):
+    """Candidate lists (`with_search_candidates`, forced at this size) change only how the
+    neighbours are found: two generations give the same database and statistics, bit for bit,
+    and a resumed run (conditions from a checkpoint tree) gets the same lists again."""
+    import jax
+
+    from evojax_motion.conditions import conditions_from_tree, conditions_to_tree
+    from evojax_motion.evolution import with_search_candidates
+
+    s, step = small, small["step"]
+    db0 = init_evolved_slots(s["humans"], s["cond"])
+    plain = s["cond"]
+    listed = with_search_candidates(db0, plain, s["basis"], min_conditions=1)
+    assert plain.candidates is None and listed.candidates.shape == (M_COND, 5 * 6)
+    assert with_search_candidates(db0, plain, s["basis"], min_conditions=M_COND + 1) is plain
+    runs = []
+    for cond in (plain, listed):
+        db, stats = jax.tree_util.tree_map(jax.numpy.asarray, db0), []
+        for g in (1, 2):
+            db, st = step(db, cond, np.int32(g))
+            stats.append(st)
+        runs.append((db, stats))
+    for a, b in zip(jax.tree_util.tree_leaves(runs[0]), jax.tree_util.tree_leaves(runs[1])):
+        assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+    resumed = with_search_candidates(
+        runs[1][0], conditions_from_tree(conditions_to_tree(listed)), s["basis"], min_conditions=1
+    )
+    np.testing.assert_array_equal(resumed.candidates, listed.candidates)
+
+
 def _dot_precisions(jaxpr) -> list:
     """The ``precision`` of every ``dot_general`` in ``jaxpr`` and its sub-programs."""
     import jax.extend

@@ -157,10 +157,11 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     condition draw's three stages) from the traced programs of the first one, tracing none (a
     key with anything unstable in it would retrace, silently slower), and gives the same state.
     The generation step is compiled early for `expected_inputs`; were they not shaped and typed
-    as what `initial_state` returns, every run would compile it twice, silently."""
+    as what `initial_state` returns (with the neighbour search's candidate lists where there are
+    many conditions), every run would compile it twice, silently."""
     import jax
 
-    from evojax_motion import compile_cache
+    from evojax_motion import compile_cache, evolution
     from evojax_motion.compile_cache import signature
     from evojax_motion.config import config_from_dict, config_to_dict, load_config
     from evojax_motion.database import humans_only, save_database
@@ -199,6 +200,12 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     assert signature(expected_inputs(from_file, robot)) == actual
     missing = config_from_dict(config_to_dict(cfg), [f"demos_file={tmp_path / 'none.npz'}"])
     assert expected_inputs(missing, robot) is None  # initial_state reports the missing file
+
+    # many conditions: the neighbour search's candidate lists are inputs of the step too
+    monkeypatch.setattr(evolution, "SEARCH_CANDIDATES_MIN_CONDITIONS", 1)
+    _, listed, *_ = initial_state(cfg, robot, dyn, progress=False)
+    assert listed.candidates is not None
+    assert signature(expected_inputs(cfg, robot)) == signature((db, listed)) != actual
 
 
 def _db(path):
