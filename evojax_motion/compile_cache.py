@@ -15,6 +15,10 @@
   `traced_program` wraps a jitted function so that every call compiles through `compile_traced`
   (once per argument signature): the run's setup programs (demonstrations, costs, conditions)
   use it as the generation step does.
+- **Results** (`result_path`): what the package computes from a config alone and would compute
+  again, bit for bit, in the next process (the synthesised demonstrations: seconds of execution
+  that no compilation cache removes), in ``results/`` of the same directory, under the same kind
+  of key (so a new package source, JAX or backend computes them anew).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ import numpy as np
 
 CACHE_ENV = "EVOJAX_MOTION_JAX_CACHE"  # a directory, or "off"
 TRACED_DIR = "traced"  # under the compilation cache directory
+RESULTS_DIR = "results"  # ditto
 _SUFFIX = ".jaxexport"
 
 
@@ -59,8 +64,21 @@ def enable_compile_cache() -> None:
 
 def traced_cache_dir() -> Path | None:
     """``<compilation cache>/traced``, or None when JAX's persistent cache is off."""
+    return _cache_subdir(TRACED_DIR)
+
+
+def _cache_subdir(name: str) -> Path | None:
     where = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]
-    return Path(where) / TRACED_DIR if where else None
+    return Path(where) / name if where else None
+
+
+def result_path(parts: Any, suffix: str = ".npz") -> Path | None:
+    """Where a result that ``parts`` (JSON-able: what it is and what it depends on, e.g. config
+    sections and a model digest) determines is kept: ``<compilation cache>/results/<key>``, the
+    key as `program_key`'s (package source, JAX versions, backend, settings, ``parts``); None
+    when JAX's persistent cache is off. The caller reads, validates and writes the file."""
+    folder = _cache_subdir(RESULTS_DIR)
+    return None if folder is None else folder / f"{program_key(parts, ())}{suffix}"
 
 
 @functools.cache

@@ -6,6 +6,7 @@ same demonstration database.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +14,13 @@ import jax
 import numpy as np
 
 from evojax_motion.config import Config, config_to_dict
-from evojax_motion.database import Database, DatabaseMeta, human_mask, load_database
+from evojax_motion.database import (
+    Database,
+    DatabaseMeta,
+    human_mask,
+    load_database,
+    save_database,
+)
 from evojax_motion.dynamics import Dynamics, make_dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.robot import Robot, load_robot
@@ -69,7 +76,9 @@ def demonstrations(
 ) -> tuple[Database, DatabaseMeta]:
     """``(db, meta)`` of `build_demonstrations` for the config's ``robot`` and ``dyn``, without
     the summary: the valid human rows only. ``cache``: `cache_parts` of ``cfg``, to keep the
-    synthesis's traced program across processes (None: compiled in this process only)."""
+    synthesis's traced program and its result across processes while the compilation cache is
+    on (`compile_cache.result_path`; None: synthesised and compiled in this process only)."""
+    from evojax_motion.compile_cache import result_path
     from evojax_motion.demos import generate_demonstrations
 
     if cfg.demos_file is not None:
@@ -77,10 +86,23 @@ def demonstrations(
         check_database_matches_robot(meta, robot, cfg.demos_file)
         keep = human_mask(db)
         return Database(*(np.asarray(a)[keep] for a in db)), meta
+    path = None if cache is None else result_path({"result": "demonstrations", "parts": cache})
+    if path is not None and path.is_file():
+        try:
+            return load_database(path)
+        except UserError as e:  # damaged: synthesise again (the result is the same)
+            print(f"warning: cached demonstrations unreadable ({e}); synthesising", file=sys.stderr)
+            path.unlink(missing_ok=True)
     key = jax.random.key(cfg.demos.seed)
     db, report = generate_demonstrations(robot, dyn, cfg.demos, key, cache)
     description = str(report.get("description", "synthetic human-like demonstrations"))
-    return db, DatabaseMeta.of_robot(robot, synthetic=True, description=description)
+    meta = DatabaseMeta.of_robot(robot, synthetic=True, description=description)
+    if path is not None:
+        try:
+            save_database(path, db, meta)
+        except OSError as e:  # a read-only cache: synthesised again next time
+            print(f"warning: {path}: demonstrations not cached ({e})", file=sys.stderr)
+    return db, meta
 
 
 def print_demo_summary(report: dict, path: Path | None = None) -> None:

@@ -276,3 +276,43 @@ def test_robot_specific_settings_are_checked_against_the_robot(mahru):
     custom = robot_from_mjcf_text("custom", TREE_ARM.read_text(), site="tip")
     with pytest.raises(UserError, match=r"^demos\.region: robot 'custom' has no preset"):
         generate_demonstrations(custom, make_dynamics(custom), DemoSettings(), jax.random.key(0))
+
+
+def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsys):
+    """With the compilation cache on, `workflow.demonstrations` synthesises a config's
+    demonstrations once and reads them back in later runs (bit for bit, no synthesis); a
+    damaged file is reported and synthesised again; without a cache key nothing is kept."""
+    from evojax_motion import compile_cache, demos, workflow
+    from evojax_motion.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
+    robot, dyn = workflow.make_robot_dynamics(cfg)
+    parts = workflow.cache_parts(cfg, robot)
+    kept = compile_cache.result_path({"result": "demonstrations", "parts": parts})
+    assert kept is not None and kept.parent.name == compile_cache.RESULTS_DIR  # conftest's cache
+    path = tmp_path / "results" / "demos.npz"
+    monkeypatch.setattr(compile_cache, "result_path", lambda parts, suffix=".npz": path)
+    calls = []
+    synthesise = demos.generate_demonstrations
+    monkeypatch.setattr(
+        demos, "generate_demonstrations", lambda *a, **k: calls.append(1) or synthesise(*a, **k)
+    )
+
+    def same(a, b):
+        for x, y in zip(a[0], b[0], strict=True):
+            assert np.asarray(x).dtype == np.asarray(y).dtype
+            assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+        assert a[1] == b[1]
+
+    first = workflow.demonstrations(cfg, robot, dyn, parts)
+    assert len(calls) == 1 and path.is_file()
+    same(workflow.demonstrations(cfg, robot, dyn, parts), first)
+    assert len(calls) == 1  # read back, not synthesised
+    path.write_bytes(b"damaged")
+    same(workflow.demonstrations(cfg, robot, dyn, parts), first)
+    assert len(calls) == 2 and "cached demonstrations unreadable" in capsys.readouterr().err
+    same(workflow.demonstrations(cfg, robot, dyn, parts), first)
+    assert len(calls) == 2  # written anew
+    path.unlink()
+    same(workflow.demonstrations(cfg, robot, dyn), first)  # no key: nothing kept
+    assert len(calls) == 3 and not path.exists()

@@ -153,9 +153,10 @@ def tiny_run(tmp_path_factory):
 def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     tmp_path, monkeypatch
 ):
-    """A second setup of the same config compiles every setup program (synthesis, costs, the
-    condition draw's three stages) from the traced programs of the first one, tracing none (a
-    key with anything unstable in it would retrace, silently slower), and gives the same state.
+    """A second setup of the same config reads the first one's demonstrations back (a kept
+    result) and compiles every other setup program (costs, the condition draw's three stages)
+    from the first one's traced programs, tracing none (a key with anything unstable in it would
+    retrace, silently slower), and gives the same state.
     The generation step is compiled early for `expected_inputs`; were they not shaped and typed
     as what `initial_state` returns (with the neighbour search's candidate lists where there are
     many conditions), every run would compile it twice, silently."""
@@ -187,7 +188,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     monkeypatch.setattr(jax.export, "export", counted("export", jax.export.export))
     again, conditions_again, *_ = initial_state(cfg, robot, dyn, progress=False)
     monkeypatch.undo()
-    assert calls == {"compile_traced": 5, "export": 0}
+    assert calls == {"compile_traced": 4, "export": 0}  # the demonstrations: a kept result
     for a, b in zip(jax.tree_util.tree_leaves((db, conditions)),
                     jax.tree_util.tree_leaves((again, conditions_again)), strict=True):  # fmt: skip
         np.testing.assert_array_equal(a, b)
