@@ -292,11 +292,15 @@ def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsy
     assert kept is not None and kept.parent.name == compile_cache.RESULTS_DIR  # conftest's cache
     path = tmp_path / "results" / "demos.npz"
     monkeypatch.setattr(compile_cache, "result_path", lambda parts, suffix=".npz": path)
-    calls = []
+    calls, made = [], []
     synthesise = demos.generate_demonstrations
-    monkeypatch.setattr(
-        demos, "generate_demonstrations", lambda *a, **k: calls.append(1) or synthesise(*a, **k)
-    )
+
+    def counted(*args, **kwargs):  # synthesises once; later calls return that result again
+        calls.append(1)
+        made[:] = made or [synthesise(*args, **kwargs)]
+        return made[0]
+
+    monkeypatch.setattr(demos, "generate_demonstrations", counted)
 
     def same(a, b):
         for x, y in zip(a[0], b[0], strict=True):
