@@ -69,7 +69,7 @@ def build(cfg, conditions: int):
     """Robot, dynamics, the generation-0 database and condition set for ``conditions``."""
     cfg = config_from_dict(config_to_dict(cfg), [f"evolution.conditions={conditions}"])
     robot, dyn = make_robot_dynamics(cfg)
-    db, conds, _meta, _baseline, _t = initial_state(cfg, robot, dyn, progress=False)
+    db, conds, _meta, _baseline, _t = initial_state(cfg, robot, dyn)
     return cfg, robot, dyn, db, conds
 
 

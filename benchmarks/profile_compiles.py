@@ -62,7 +62,7 @@ def main(argv=None) -> None:
 
     cfg = load_config(args.config)
     robot, dyn = workflow.make_robot_dynamics(cfg)
-    demos = workflow.build_demonstrations
+    demos = workflow.demonstrations  # what `train.initial_state` calls
 
     def timed_demos(*a, **k):  # the phases: demonstrations, then everything else of the setup
         phase[0] = "demonstrations"
@@ -70,8 +70,8 @@ def main(argv=None) -> None:
         phase[0] = "conditions and costs"
         return out
 
-    workflow.build_demonstrations = timed_demos
-    db, conditions, *_ = train.initial_state(cfg, robot, dyn, progress=False)
+    workflow.demonstrations = timed_demos
+    db, conditions, *_ = train.initial_state(cfg, robot, dyn)
     phase[0] = "generation step"
     compile_step = getattr(train, "compile_generation_step", None)
     if compile_step is not None:

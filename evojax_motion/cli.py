@@ -32,7 +32,7 @@ def _cmd_demos(args) -> int:
         raise UserError(f"{out}: already exists (pass --force to overwrite)")
     if out.suffix != ".npz":
         raise UserError(f"{out}: expected an output path ending in .npz")
-    db, meta, report = build_demonstrations(cfg, progress=not args.quiet)
+    db, meta, report = build_demonstrations(cfg)
     from evojax_motion.database import save_database
 
     save_database(out, db, meta)

@@ -33,7 +33,7 @@ from evojax_motion.compile_optim import (
     cpu_fast_path,
     make_optimisation_compiler,
 )
-from evojax_motion.database import EVOLVED, Database
+from evojax_motion.database import EVOLVED, Database, count_human
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import check_setting
 from evojax_motion.objective import torque_sum, trajectory_torques
@@ -232,6 +232,9 @@ SEARCH_CANDIDATES_MIN_CONDITIONS = 2048
 CANDIDATE_SLOTS_PER_NEIGHBOUR = 4
 
 
+_neighbour_candidates = jax.jit(neighbour_candidates, static_argnums=(2, 4, 5, 6))
+
+
 def with_search_candidates(
     db: Database,
     conditions,
@@ -250,8 +253,6 @@ def with_search_candidates(
     search is exact either way (`search_neighbours`). ``placeholder``: zeros of the right shape
     (the step's expected inputs, before the database exists). Returns numpy arrays.
     """
-    from evojax_motion.database import count_human
-
     m = conditions.target.shape[0]
     if m < (SEARCH_CANDIDATES_MIN_CONDITIONS if min_conditions is None else min_conditions):
         return conditions
@@ -259,8 +260,7 @@ def with_search_candidates(
     width = k + CANDIDATE_SLOTS_PER_NEIGHBOUR * k
     if placeholder:
         return conditions._replace(candidates=np.zeros((m, width), np.int32))
-    find = jax.jit(neighbour_candidates, static_argnums=(2, 4, 5, 6))
-    cand = find(
+    cand = _neighbour_candidates(
         jnp.asarray(db.condition), jnp.asarray(db.valid), count_human(db),
         jnp.asarray(conditions.target), k, width - k, basis_settings.w_pos,
     )  # fmt: skip

@@ -267,7 +267,7 @@ def _log(msg: str) -> None:
 # ---------------------------------------------------------------------------------- the run
 
 
-def initial_state(cfg: Config, robot, dyn, progress: bool = True):
+def initial_state(cfg: Config, robot, dyn):
     """Generation 0 of ``cfg``: ``(db, conditions, meta, baseline, timings)``.
 
     The human database (``demos_file`` or synthetic demonstrations), each primitive's eq. 5 cost
@@ -392,7 +392,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             metrics = [dict(r) for r in restored.meta.get("metrics", [])][:start]
             baseline = dict(restored.meta.get("baseline", {}))
         else:  # every UserError of the inputs is raised here, before anything is written
-            db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, progress)
+            db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn)
             start, metrics = 0, []
     except BaseException:
         if early is not None:

@@ -59,7 +59,7 @@ def cache_parts(cfg: Config, robot: Robot) -> dict:
     return {"config": {k: sections[k] for k in names}, "model": model_digest(robot.mj_model)}
 
 
-def build_demonstrations(cfg: Config, progress: bool = True) -> tuple[Database, DatabaseMeta, dict]:
+def build_demonstrations(cfg: Config) -> tuple[Database, DatabaseMeta, dict]:
     """The human demonstration database of a config: ``demos_file`` if set, else synthetic ones.
 
     Returns ``(db, meta, report)``; ``report`` is the summary printed by the CLI.

@@ -37,7 +37,7 @@ def tiny():
 
     cfg = load_config(REPO / "configs" / "tiny.yaml")
     robot, dyn = make_robot_dynamics(cfg)
-    db, cond, *_ = initial_state(cfg, robot, dyn, progress=False)
+    db, cond, *_ = initial_state(cfg, robot, dyn)
     n_human = int(np.sum(db.origin == HUMAN))
     grid = make_time_grid(db.q.shape[1])
     step = make_sharded_generation_step(

@@ -172,7 +172,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     assert compile_cache.traced_cache_dir() is not None  # conftest's session cache
     cfg = load_config(TINY)
     robot, dyn = make_robot_dynamics(cfg)
-    db, conditions, meta, *_ = initial_state(cfg, robot, dyn, progress=False)
+    db, conditions, meta, *_ = initial_state(cfg, robot, dyn)
     calls = {"compile_traced": 0, "export": 0}
 
     def counted(name, fn):
@@ -186,7 +186,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
         compile_cache, "compile_traced", counted("compile_traced", compile_cache.compile_traced)
     )
     monkeypatch.setattr(jax.export, "export", counted("export", jax.export.export))
-    again, conditions_again, *_ = initial_state(cfg, robot, dyn, progress=False)
+    again, conditions_again, *_ = initial_state(cfg, robot, dyn)
     monkeypatch.undo()
     assert calls == {"compile_traced": 4, "export": 0}  # the demonstrations: a kept result
     for a, b in zip(jax.tree_util.tree_leaves((db, conditions)),
@@ -204,7 +204,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
 
     # many conditions: the neighbour search's candidate lists are inputs of the step too
     monkeypatch.setattr(evolution, "SEARCH_CANDIDATES_MIN_CONDITIONS", 1)
-    _, listed, *_ = initial_state(cfg, robot, dyn, progress=False)
+    _, listed, *_ = initial_state(cfg, robot, dyn)
     assert listed.candidates is not None
     assert signature(expected_inputs(cfg, robot)) == signature((db, listed)) != actual
 
