@@ -23,6 +23,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import hashlib
 import importlib
@@ -157,24 +158,59 @@ def compile_traced(jitted, args: tuple, parts: Any, compiler_options: dict | Non
     return jax.jit(exported.call, compiler_options=compiler_options).lower(*args).compile()
 
 
-def traced_program(jitted, parts: Any, compiler_options: dict | None = None):
-    """``call(*args)``: ``jitted(*args)`` compiled by `compile_traced` (with ``parts`` and
+class TracedProgram:
+    """``program(*args)``: ``jitted(*args)`` compiled by `compile_traced` (with ``parts`` and
     ``compiler_options``) once per argument `signature` and kept for later calls. Arguments are
     passed as the compiled program takes them (no static arguments, same dtypes and weak types
-    as the first call of that signature). Without a compilation cache directory: ``jitted``."""
-    compiled: dict = {}
-    name = f"{jitted.__module__}:{jitted.__qualname__}"  # two programs, same arguments
+    as the first call of that signature). ``parts`` None: nothing is kept on disk (the caller
+    cannot name what the closure depends on); the compiled programs are still kept.
 
-    def call(*args):
-        if traced_cache_dir() is None:
-            return jitted(*args)
+    `precompile` compiles for arguments given as shapes (``jax.ShapeDtypeStruct``) before the
+    data exist, e.g. in a `Background` thread; a call of the same signature meanwhile waits for
+    that compile instead of starting its own.
+    """
+
+    def __init__(self, jitted, parts: Any, compiler_options: dict | None = None):
+        self._jitted, self._options = jitted, compiler_options
+        name = f"{jitted.__module__}:{jitted.__qualname__}"  # two programs, same arguments
+        self._parts = None if parts is None else {"program": name, "parts": parts}
+        self._compiled: dict[str, concurrent.futures.Future] = {}
+        self._lock = threading.Lock()
+
+    def precompile(self, *args):
+        """The compiled program for ``args`` (arrays or ``jax.ShapeDtypeStruct``); its
+        ``out_info`` gives the result's shapes."""
         sig = repr(signature(args))
-        if sig not in compiled:
-            key_parts = {"program": name, "parts": parts}
-            compiled[sig] = compile_traced(jitted, args, key_parts, compiler_options)
-        return compiled[sig](*args)
+        with self._lock:
+            future = self._compiled.get(sig)
+            mine = future is None
+            if mine:
+                future = self._compiled[sig] = concurrent.futures.Future()
+        if not mine:
+            try:
+                return future.result()
+            except BaseException:  # the other thread's compile failed: this one tries again
+                return self.precompile(*args)
+        try:
+            if self._parts is None:
+                compiled = self._jitted.lower(*args).compile()
+            else:
+                compiled = compile_traced(self._jitted, args, self._parts, self._options)
+        except BaseException as e:
+            with self._lock:  # a later call compiles again (and reports the error itself)
+                del self._compiled[sig]
+            future.set_exception(e)
+            raise
+        future.set_result(compiled)
+        return compiled
 
-    return call
+    def __call__(self, *args):
+        return self.precompile(*args)(*args)
+
+
+def traced_program(jitted, parts: Any, compiler_options: dict | None = None) -> TracedProgram:
+    """`TracedProgram` of ``jitted``."""
+    return TracedProgram(jitted, parts, compiler_options)
 
 
 class Background:

@@ -475,24 +475,41 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         ok = jnp.isfinite(f) & jnp.all(jnp.isfinite(g), axis=1)
         return f, jnp.where(free & ok[:, None], g, 0.0), ok
 
-    f0, g0, ok0 = grad(z0)
-    state = dict(
-        z=z0,
-        f=f0,
-        g=g0,
-        bm=model_hessian(z0) if exact else initial_bfgs(g0),
-        radius=jnp.full((b,), RADIUS_INIT, dtype),
-        it=jnp.asarray(0, jnp.int32),
-        iters=jnp.zeros((b,), jnp.int32),
-        done=~ok0,
-        conv=jnp.zeros((b,), bool),
-    )
     scales = jnp.asarray(STEP_SCALES, dtype)
 
-    def cond(st):
-        return (st["it"] < settings.max_iters) & jnp.any(~st["done"])
+    # One pass of the loop evaluates the gradient at the point the previous pass proposed
+    # (``zp``; the first pass: z0), completes that iteration (acceptance, model update), then
+    # proposes the next step. The gradient and the exact Hessian are thus traced once each: at
+    # the start and inside the loop, they compiled twice (a third of the generation step's
+    # compile time). The iterates are those of the textbook order.
+    def finish(st):
+        """Accept or reject the proposed point ``zp`` and update the model there."""
+        z, f, g, bm, first = st["z"], st["f"], st["g"], st["bm"], st["first"]
+        f_p, g_p, ok_p = grad(st["zp"])
+        accept = first | (st["accept"] & ok_p)
+        z_new = jnp.where(accept[:, None], st["zp"], z)
+        f_new = jnp.where(accept, f_p, f)
+        g_new = jnp.where(accept[:, None], g_p, g)
+        if exact:  # the counter counts proposals: the first pass is iteration 0
+            bm_new = jax.lax.cond(
+                first | (st["it"] % settings.hessian_every == 0),
+                lambda: model_hessian(z_new),
+                lambda: bfgs(bm, z_new - z, g_new - g, accept),
+            )
+        else:
+            updated = bfgs(bm, z_new - z, g_new - g, accept)
+            # A quasi-Newton model that no step length along its direction confirms is wrong:
+            # restart it as a steepest-descent model scaled to the (shrunk) radius.
+            reset = st["active"] & ~accept
+            radius = jnp.maximum(st["radius"], jnp.finfo(dtype).tiny)
+            sigma = jnp.linalg.norm(g, axis=1) / radius
+            updated = jnp.where(reset[:, None, None], sigma[:, None, None] * eye, updated)
+            bm_new = jnp.where(first, initial_bfgs(g_new), updated)
+        done = jnp.where(first, ~ok_p, st["done"])
+        return dict(st, z=z_new, f=f_new, g=g_new, bm=bm_new, done=done, first=False)
 
-    def body(st):
+    def propose(st):
+        """The next trust-region step from ``z``: ``zp``, whether a step length passed, radius."""
         z, f, g, bm, radius = st["z"], st["f"], st["g"], st["bm"], st["radius"]
         p, _, decrement = _trust_region_step(bm, g, radius)
         conv_now = ~st["done"] & (decrement <= settings.tol * jnp.abs(f))
@@ -506,16 +523,16 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         pred = -(scales[:, None] * gp + 0.5 * scales[:, None] ** 2 * pbp)
         rho = (f - f_s) / jnp.maximum(pred, jnp.finfo(dtype).tiny)
         ok_s = jnp.isfinite(f_s) & (f_s < f) & (rho > RHO_ACCEPT)
-        first = jnp.argmax(ok_s, axis=0)  # longest acceptable length
+        longest = jnp.argmax(ok_s, axis=0)  # index of the longest acceptable length
         accept = active & jnp.any(ok_s, axis=0)
-        scale = scales[first]
+        scale = scales[longest]
         step = jnp.linalg.norm(p, axis=1)
         rho_full = rho[0]
         radius_new = jnp.where(
             ~accept,
             0.5 * scales[-1] * step,
             jnp.where(
-                first > 0,
+                longest > 0,
                 scale * step,
                 jnp.where(
                     rho_full < RHO_BAD,
@@ -525,39 +542,41 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
             ),
         )
         radius_new = jnp.where(active, jnp.minimum(radius_new, RADIUS_MAX), radius)
-        z_new = jnp.where(accept[:, None], z + scale[:, None] * p, z)
-        f_new, g_new, ok_new = grad(z_new)
-        accept = accept & ok_new
-        z_new = jnp.where(accept[:, None], z_new, z)
-        f_new = jnp.where(accept, f_new, f)
-        g_new = jnp.where(accept[:, None], g_new, g)
-        it = st["it"] + 1
-        if exact:
-            bm_new = jax.lax.cond(
-                it % settings.hessian_every == 0,
-                lambda: model_hessian(z_new),
-                lambda: bfgs(bm, z_new - z, g_new - g, accept),
-            )
-        else:
-            bm_new = bfgs(bm, z_new - z, g_new - g, accept)
-            # A quasi-Newton model that no step length along its direction confirms is wrong:
-            # restart it as a steepest-descent model scaled to the (shrunk) radius.
-            reset = active & ~accept
-            sigma = jnp.linalg.norm(g, axis=1) / jnp.maximum(radius_new, jnp.finfo(dtype).tiny)
-            bm_new = jnp.where(reset[:, None, None], sigma[:, None, None] * eye, bm_new)
         return dict(
-            z=z_new,
-            f=f_new,
-            g=g_new,
-            bm=bm_new,
+            st,
+            zp=jnp.where(accept[:, None], z + scale[:, None] * p, z),
+            accept=accept,
+            active=active,
             radius=radius_new,
-            it=it,
+            it=st["it"] + 1,
             iters=st["iters"] + active.astype(jnp.int32),
             done=st["done"] | conv_now | (radius_new < RADIUS_MIN),
             conv=st["conv"] | conv_now,
         )
 
-    st = jax.lax.while_loop(cond, body, state)
+    def body(st):
+        st = finish(st)
+        go_on = (st["it"] < settings.max_iters) & jnp.any(~st["done"])
+        st = jax.lax.cond(go_on, propose, lambda s: s, st)
+        return dict(st, pending=go_on)
+
+    state = dict(
+        z=z0,
+        f=jnp.zeros((b,), dtype),
+        g=jnp.zeros_like(z0),
+        bm=jnp.zeros((b, n, n), dtype),
+        radius=jnp.full((b,), RADIUS_INIT, dtype),
+        it=jnp.asarray(0, jnp.int32),
+        iters=jnp.zeros((b,), jnp.int32),
+        done=jnp.zeros((b,), bool),
+        conv=jnp.zeros((b,), bool),
+        zp=z0,
+        accept=jnp.zeros((b,), bool),
+        active=jnp.zeros((b,), bool),
+        first=jnp.asarray(True),
+        pending=jnp.asarray(True),
+    )
+    st = jax.lax.while_loop(lambda s: s["pending"], body, state)
     return _Result(z=st["z"], f=st["f"], iterations=st["iters"], converged=st["conv"])
 
 

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
-from evojax_motion.compile_cache import traced_program
+from evojax_motion.compile_cache import TracedProgram, traced_program
 from evojax_motion.compile_interp import Boundary, compile_interpolation
 from evojax_motion.database import Database, human_mask
 from evojax_motion.dynamics import Dynamics
@@ -82,41 +82,57 @@ def _take(tree, idx: np.ndarray):
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[idx], tree)
 
 
-def make_conditions(
-    db: Database,
+class ConditionPrograms(NamedTuple):
+    """The condition draw's three compiled stages (`condition_programs`), around its
+    data-dependent choices: ``candidates(key, lo, hi, condition (N, 3), human (N,))`` draws
+    and finds the candidates' neighbours, ``reach(cand, nb, q)`` solves the IK of m of them,
+    ``finish(target, nb, qf, ik_error, q, duration)`` makes the m conditions."""
+
+    candidates: TracedProgram
+    reach: TracedProgram
+    finish: TracedProgram
+    conditions: int  # m
+
+    def precompile(self, n_human: int, samples: int, joints: int) -> None:
+        """Compile the three for a database of ``n_human`` demonstrations of ``samples`` x
+        ``joints`` before it exists (float32, as `make_conditions` passes them)."""
+        f32 = np.dtype(np.float32)
+
+        def shape(*s, dtype=f32):
+            return jax.ShapeDtypeStruct(s, dtype)
+
+        key = jax.eval_shape(jax.random.key, 0)
+        drawn = self.candidates.precompile(
+            key, shape(3), shape(3), shape(n_human, 3), shape(n_human, dtype=np.dtype(bool))
+        ).out_info
+        m = self.conditions
+        cand, nb = jax.tree_util.tree_map(lambda a: shape(m, *a.shape[1:], dtype=a.dtype), drawn)
+        q = shape(n_human, samples, joints)
+        self.reach.precompile(cand, nb, q)
+        self.finish.precompile(cand, nb, shape(m, joints), shape(m), q, shape(n_human))
+
+
+def condition_programs(
     dyn: Dynamics,
     robot: Robot,
     settings: EvolutionSettings,
     basis: BasisSettings,
     grid: TimeGrid,
-    key: jax.Array,
     cache_parts: Any = None,
-) -> Conditions:
-    """Draw the m conditions of ``settings`` (``EvolutionSettings``) from human demonstrations.
-
-    ``db``: the database; only its valid human rows are used. ``key``: the only randomness.
-    ``cache_parts``: what `compile_cache.traced_program` keys its programs by besides their
-    arguments (the config sections and robot model behind ``dyn``, ``robot``, ``settings`` and
-    ``basis``); None compiles them in this process only.
-    Raises ``UserError`` when fewer than m candidates qualify.
-    """
+) -> ConditionPrograms:
+    """The programs `make_conditions` runs for ``settings`` (``EvolutionSettings``): built
+    before the demonstrations exist, so that they can be compiled meanwhile
+    (`ConditionPrograms.precompile`). ``cache_parts``: what `compile_cache.traced_program`
+    keys them by besides their arguments (the config sections and robot model behind ``dyn``,
+    ``robot``, ``settings`` and ``basis``); None compiles them in this process only."""
     m = settings.conditions
-    lo, hi = sampling_box(db, settings.region_margin)
-    n_human = int(human_mask(db).sum())
-    if settings.min_neighbours > n_human:
-        raise UserError(
-            f"evolution.min_neighbours: expected <= the {n_human} demonstrations, "
-            f"got {settings.min_neighbours}"
-        )
     n_cand = m * settings.candidates_per_condition
-    q = jnp.asarray(db.q)
-    lower, upper = jnp.asarray(robot.lower, q.dtype), jnp.asarray(robot.upper, q.dtype)
 
     # Jitted stages around the data-dependent choices (eager PCA is ~100x slower); the data are
     # arguments, not constants, so that a later run with other demonstrations reuses them.
     @jax.jit
     def candidates(key, lo, hi, condition, human):
-        cand = jax.random.uniform(key, (n_cand, 3), q.dtype, lo, hi)
+        cand = jax.random.uniform(key, (n_cand, 3), condition.dtype, lo, hi)
         nb = select_neighbours(condition, human, cand, basis.neighbours, basis.radius, basis.w_pos)
         return cand, nb
 
@@ -124,6 +140,7 @@ def make_conditions(
     @exact_matmuls
     def reach(cand, nb, q):
         final = q[nb.index, -1]  # (m, k, J) the neighbours' final postures
+        lower, upper = jnp.asarray(robot.lower, q.dtype), jnp.asarray(robot.upper, q.dtype)
         return solve_ik(dyn, cand, final[:, 0], lower, upper, q_pref=_masked_mean(final, nb.mask))
 
     @jax.jit
@@ -148,11 +165,46 @@ def make_conditions(
             human_q=ref.q.astype(f32),
         )
 
-    if cache_parts is not None:
-        candidates, reach, finish = (
-            traced_program(f, cache_parts) for f in (candidates, reach, finish)
-        )  # fmt: skip
-    condition = jnp.asarray(db.condition, q.dtype)
+    return ConditionPrograms(
+        candidates=traced_program(candidates, cache_parts),
+        reach=traced_program(reach, cache_parts),
+        finish=traced_program(finish, cache_parts),
+        conditions=m,
+    )
+
+
+def make_conditions(
+    db: Database,
+    dyn: Dynamics,
+    robot: Robot,
+    settings: EvolutionSettings,
+    basis: BasisSettings,
+    grid: TimeGrid,
+    key: jax.Array,
+    cache_parts: Any = None,
+    programs: ConditionPrograms | None = None,
+) -> Conditions:
+    """Draw the m conditions of ``settings`` (``EvolutionSettings``) from human demonstrations.
+
+    ``db``: the database; only its valid human rows are used. ``key``: the only randomness.
+    ``cache_parts``: see `condition_programs`; ``programs``: those already made (and perhaps
+    compiled) for the same arguments, else made here.
+    Raises ``UserError`` when fewer than m candidates qualify.
+    """
+    m = settings.conditions
+    lo, hi = sampling_box(db, settings.region_margin)
+    n_human = int(human_mask(db).sum())
+    if settings.min_neighbours > n_human:
+        raise UserError(
+            f"evolution.min_neighbours: expected <= the {n_human} demonstrations, "
+            f"got {settings.min_neighbours}"
+        )
+    n_cand = m * settings.candidates_per_condition
+    q = np.asarray(db.q)  # numpy: a jax copy is one more XLA program (seconds while others compile)
+    if programs is None:
+        programs = condition_programs(dyn, robot, settings, basis, grid, cache_parts)
+    candidates, reach, finish = programs.candidates, programs.reach, programs.finish
+    condition = np.asarray(db.condition, q.dtype)
     cand, nb = candidates(key, lo, hi, condition, human_mask(db))
     # In key order, the first m candidates with enough neighbours whose IK reaches them. The IK
     # (the costly part) runs on m candidates at a time, as many times as that takes: usually
@@ -180,7 +232,7 @@ def make_conditions(
         )
     chosen_nb, target = _take((nb, cand), np.concatenate(chosen)[:m])
     qf_m, ik_error_m = np.concatenate(qf)[:m], np.concatenate(ik_error)[:m]
-    return finish(target, chosen_nb, qf_m, ik_error_m, q, jnp.asarray(db.duration, q.dtype))
+    return finish(target, chosen_nb, qf_m, ik_error_m, q, np.asarray(db.duration, q.dtype))
 
 
 def conditions_to_tree(c: Conditions) -> dict:

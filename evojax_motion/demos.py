@@ -295,22 +295,22 @@ class _Resolved(NamedTuple):
 class _Params(NamedTuple):
     """Traced scalar settings of the batched generator (changing them does not recompile)."""
 
-    fitts_a: jnp.ndarray
-    fitts_b: jnp.ndarray
-    target_width: jnp.ndarray
-    duration_noise: jnp.ndarray
-    asymmetry_mean: jnp.ndarray
-    asymmetry_std: jnp.ndarray
-    curvature_std: jnp.ndarray
-    arc_blend: jnp.ndarray
-    max_speed_fraction: jnp.ndarray
-    limit_margin: jnp.ndarray  # [rad]
+    fitts_a: _Array
+    fitts_b: _Array
+    target_width: _Array
+    duration_noise: _Array
+    asymmetry_mean: _Array
+    asymmetry_std: _Array
+    curvature_std: _Array
+    arc_blend: _Array
+    max_speed_fraction: _Array
+    limit_margin: _Array  # [rad]
 
     @classmethod
     def of(cls, settings: DemoSettings, dtype) -> _Params:
         values = {f: getattr(settings, f) for f in cls._fields if f != "limit_margin"}
         values["limit_margin"] = math.radians(settings.limit_margin_deg)
-        return cls(**{k: jnp.asarray(v, dtype) for k, v in values.items()})
+        return cls(**{k: np.asarray(v, dtype) for k, v in values.items()})  # no XLA op
 
 
 class _Trials(NamedTuple):
@@ -474,22 +474,33 @@ def _shoulder_arc(centre, p0, target, u):
 class _Robot(NamedTuple):
     """The robot's arrays the generator needs, ``(J,)`` each except ``centre (3,)``."""
 
-    centre: jnp.ndarray  # catch-region centre = shoulder-arc centre [m]
-    rest: jnp.ndarray
-    comfort: jnp.ndarray  # preferred final posture [rad]
-    posture_std: jnp.ndarray  # [rad]
-    posture_weight: jnp.ndarray  # IK w_pref
-    lower: jnp.ndarray
-    upper: jnp.ndarray
-    velocity_limit: jnp.ndarray
+    centre: _Array  # catch-region centre = shoulder-arc centre [m]
+    rest: _Array
+    comfort: _Array  # preferred final posture [rad]
+    posture_std: _Array  # [rad]
+    posture_weight: _Array  # IK w_pref
+    lower: _Array
+    upper: _Array
+    velocity_limit: _Array
+
+
+@functools.partial(jax.jit, static_argnames="rounds")
+def _shift_and_round_keys(key, rounds: int):
+    """The Halton shift ``(len(HALTON_BASES),)`` and one key per round ``(rounds,)``, from the
+    two halves of ``key`` (one program: op by op, each would compile on its own)."""
+    k_shift, k_rounds = jax.random.split(key)
+    shift = jax.random.uniform(k_shift, (len(HALTON_BASES),))
+    return shift, jax.vmap(functools.partial(jax.random.fold_in, k_rounds))(jnp.arange(rounds))
 
 
 @functools.partial(jax.jit, static_argnames=("dyn", "samples", "ik_iters"))
 @exact_matmuls
 def _simulate(
-    dyn: Dynamics, samples: int, ik_iters: int, key, target, prm: _Params, rob: _Robot
+    dyn: Dynamics, samples: int, ik_iters: int, keys, rnd, target, prm: _Params, rob: _Robot
 ) -> _Trials:
-    """Every trial of a candidate pool in one program. ``target (P, 3)`` catch points."""
+    """Every trial of a candidate pool in one program: round ``rnd`` (int32 scalar) of the
+    round keys ``keys (rounds,)``, ``target (P, 3)`` catch points."""
+    key = keys[rnd]  # here: indexing a key array outside would compile two programs
     dtype = target.dtype
     p, j = target.shape[0], rob.rest.shape[0]
     grid = make_time_grid(samples, dtype=np.dtype(dtype))
@@ -609,8 +620,8 @@ def generate_demonstrations(
     key = jax.random.key(settings.seed) if key is None else key
     res = _resolve(robot, settings)
     dtype = np.dtype(dyn.dtype)
-    k_shift, k_rounds = jax.random.split(key)
-    shift = np.asarray(jax.random.uniform(k_shift, (len(HALTON_BASES),)), np.float64)
+    shift, round_keys = _shift_and_round_keys(key, settings.max_rounds)
+    shift = np.asarray(shift, np.float64)
     pool = math.ceil(settings.count * settings.oversample)
     prm = _Params.of(settings, dtype)
     arrays = dict(
@@ -620,13 +631,13 @@ def generate_demonstrations(
         upper=robot.upper,
         velocity_limit=robot.velocity_limit,
     )
-    rob = _Robot(**{f: jnp.asarray(arrays[f], dtype) for f in _Robot._fields})
+    rob = _Robot(**{f: np.asarray(arrays[f], dtype) for f in _Robot._fields})
 
     compiled, compile_s, chosen, n_valid = None, 0.0, [], 0
     for rnd in range(settings.max_rounds):  # rounds continue the Halton sequence
         u = (halton(np.arange(rnd * pool, (rnd + 1) * pool) + 1) + shift) % 1.0
-        target = jnp.asarray(region_points(res.region, res.centre, u), dtype)
-        args = (jax.random.fold_in(k_rounds, rnd), target, prm, rob)
+        target = np.asarray(region_points(res.region, res.centre, u), dtype)
+        args = (round_keys, np.asarray(rnd, np.int32), target, prm, rob)
         if compiled is None:
             t0 = time.perf_counter()
             statics = (dyn, settings.samples, settings.ik_iters)

@@ -209,43 +209,53 @@ def _from_state_tree(tree: dict):
     return Database(**tree["db"]), conditions_from_tree(tree["conditions"]), int(tree["generation"])
 
 
-def cost_program(dyn, grid, rows: int, cache: Any = None):
+class CostProgram:
     """``costs(q (n, T, J), duration (n,)) -> (eq. 5 cost (n,), Fig. 5 torque sum (n,))`` for any
     n <= ``rows``: one compiled program of ``rows`` trajectories (padded with resting ones) that
     serves both the human costs and the human-only baseline of a run. ``cache``:
-    `workflow.cache_parts` of the run, to keep the traced program across processes."""
-    import jax
+    `workflow.cache_parts` of the run, to keep the traced program across processes.
+    `precompile` compiles it for trajectories of ``samples`` x ``joints`` before the data exist.
+    """
 
-    from evojax_motion.compile_cache import traced_program
-    from evojax_motion.objective import cost_from_torques, torque_sum, trajectory_torques
+    def __init__(self, dyn, grid, rows: int, cache: Any = None):
+        import jax
 
-    def one(q, d):
-        tau = trajectory_torques(dyn, grid, q, d)
-        return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
+        from evojax_motion.compile_cache import traced_program
+        from evojax_motion.objective import cost_from_torques, torque_sum, trajectory_torques
 
-    @jax.jit
-    @exact_matmuls
-    def trajectory_costs(q, d):
-        return jax.vmap(one)(q, d)
+        def one(q, d):
+            tau = trajectory_torques(dyn, grid, q, d)
+            return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
 
-    batch = trajectory_costs if cache is None else traced_program(trajectory_costs, cache)
+        @jax.jit
+        @exact_matmuls
+        def trajectory_costs(q, d):
+            return jax.vmap(one)(q, d)
 
-    def costs(q, duration):
+        self.rows = rows
+        self._batch = traced_program(trajectory_costs, cache)
+
+    def precompile(self, samples: int, joints: int) -> None:
+        import jax
+
+        f32 = np.dtype(np.float32)
+        shapes = ((self.rows, samples, joints), (self.rows,))
+        self._batch.precompile(*(jax.ShapeDtypeStruct(s, f32) for s in shapes))
+
+    def __call__(self, q, duration):
         n = q.shape[0]
-        q_pad = np.zeros((rows, *q.shape[1:]), np.float32)
+        q_pad = np.zeros((self.rows, *q.shape[1:]), np.float32)
         q_pad[:n] = q
-        d_pad = np.ones(rows, np.float32)
+        d_pad = np.ones(self.rows, np.float32)
         d_pad[:n] = duration
-        cost, tsum = batch(q_pad, d_pad)
+        cost, tsum = self._batch(q_pad, d_pad)
         return np.asarray(cost)[:n], np.asarray(tsum)[:n]
-
-    return costs
 
 
 def human_only_baseline(costs, conditions) -> dict:
     """Eq. 5 cost and Fig. 5 torque sum of the human-only interpolations, averaged over the
     conditions: what the demonstrations alone give before any evolution (``conditions.human_q``).
-    ``costs``: `cost_program`.
+    ``costs``: `CostProgram`.
     """
     cost, tsum = costs(conditions.human_q, conditions.boundary.duration)
     return {
@@ -277,28 +287,60 @@ def initial_state(cfg: Config, robot, dyn):
     """
     import jax
 
-    from evojax_motion.conditions import make_conditions
+    from evojax_motion.compile_cache import Background
+    from evojax_motion.conditions import condition_programs, make_conditions
     from evojax_motion.database import Database, nonfinite_rows
     from evojax_motion.evolution import init_evolved_slots, with_search_candidates
     from evojax_motion.timegrid import make_time_grid
     from evojax_motion.workflow import cache_parts, demonstrations
 
     t0 = time.perf_counter()
-    parts = cache_parts(cfg, robot)
-    humans, meta = demonstrations(cfg, robot, dyn, parts)  # valid human rows only
-    check_samples(cfg, humans.q.shape[1])
-    grid = make_time_grid(humans.q.shape[1])
-    costs = cost_program(dyn, grid, max(humans.q.shape[0], cfg.evolution.conditions), parts)
-    humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
-    bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
-    for i in bad:
-        _log(f"warning: demonstration {i}: NaN/inf in its trajectory, condition or cost; not used")
-    if bad.size == humans.valid.size:
-        raise UserError("demonstrations: expected at least one finite demonstration, got none")
-    humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
-    t1 = time.perf_counter()
+    # First: a key is a few tiny XLA programs, compiled in no time before the compiles below
+    # start to share the cores (then a second each, on the critical path).
     key = jax.random.fold_in(jax.random.key(cfg.seed), CONDITIONS_STREAM)
-    conditions = make_conditions(humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, parts)
+    parts = cache_parts(cfg, robot)
+    m = cfg.evolution.conditions
+
+    def setup_programs(n: int, t: int):
+        """The time grid, `CostProgram` and `condition_programs` for n demonstrations of t."""
+        grid = make_time_grid(t)
+        costs = CostProgram(dyn, grid, max(n, m), parts)
+        return grid, costs, condition_programs(dyn, robot, cfg.evolution, cfg.basis, grid, parts)
+
+    expected = expected_sizes(cfg, robot)
+    setup = None
+    if expected is not None:  # the setup's programs compile while the demonstrations are made
+        n, t, j = expected
+        grid, costs, programs = setup_programs(n, t)
+
+        def precompile():
+            try:
+                costs.precompile(t, j)
+                programs.precompile(n, t, j)
+            except Exception:  # the same compile in the foreground reports it
+                pass
+
+        setup = Background(precompile)
+    try:
+        humans, meta = demonstrations(cfg, robot, dyn, parts)  # valid human rows only
+        check_samples(cfg, humans.q.shape[1])
+        if expected is None or humans.q.shape != (n, t, j):
+            grid, costs, programs = setup_programs(*humans.q.shape[:2])
+        humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
+        bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
+        for i in bad:
+            msg = f"demonstration {i}: NaN/inf in its trajectory, condition or cost; not used"
+            _log(f"warning: {msg}")
+        if bad.size == humans.valid.size:
+            raise UserError("demonstrations: expected at least one finite demonstration, got none")
+        humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
+        t1 = time.perf_counter()
+        conditions = make_conditions(
+            humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, programs=programs
+        )
+    finally:
+        if setup is not None:
+            setup.wait()  # nothing left compiling behind an error or the next phase
     conditions = jax.tree_util.tree_map(np.asarray, conditions)
     db = _numpy_db(init_evolved_slots(humans, conditions))
     conditions = with_search_candidates(db, conditions, cfg.basis)
@@ -491,14 +533,12 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     return compile_traced(step_fn, args, parts, options)
 
 
-def expected_inputs(cfg: Config, robot):
-    """``(db, conditions)`` of zeros shaped and typed as `initial_state` will return them, known
-    before the demonstrations are made (their count: ``demos.count``, or the valid human rows of
-    ``demos_file``); None when the file cannot be read (`initial_state` then says why).
-    A demonstration dropped as non-finite makes the real shapes differ: compare before use."""
-    from evojax_motion.conditions import conditions_from_tree, conditions_template
-    from evojax_motion.database import human_mask, load_database, make_database
-    from evojax_motion.evolution import with_search_candidates
+def expected_sizes(cfg: Config, robot) -> tuple[int, int, int] | None:
+    """``(demonstrations, samples, joints)`` that `initial_state` will meet, known before the
+    demonstrations are made: ``demos.count`` and ``demos.samples``, or the valid human rows of
+    ``demos_file``; None when the file cannot be read (`initial_state` then says why).
+    A demonstration dropped as non-finite makes the real count smaller: compare before use."""
+    from evojax_motion.database import human_mask, load_database
 
     if cfg.demos_file is None:
         n, t = cfg.demos.count, cfg.demos.samples
@@ -508,7 +548,21 @@ def expected_inputs(cfg: Config, robot):
         except UserError:
             return None
         n, t = int(human_mask(file_db).sum()), file_db.q.shape[1]
-    j, m = len(robot.joint_names), cfg.evolution.conditions
+    return n, t, len(robot.joint_names)
+
+
+def expected_inputs(cfg: Config, robot):
+    """``(db, conditions)`` of zeros shaped and typed as `initial_state` will return them
+    (`expected_sizes`; None where those are unknown)."""
+    from evojax_motion.conditions import conditions_from_tree, conditions_template
+    from evojax_motion.database import make_database
+    from evojax_motion.evolution import with_search_candidates
+
+    sizes = expected_sizes(cfg, robot)
+    if sizes is None:
+        return None
+    n, t, j = sizes
+    m = cfg.evolution.conditions
     humans = make_database(np.zeros((n, t, j)), np.ones(n), np.zeros((n, 3)), capacity=n + m)
     conditions = conditions_from_tree(conditions_template(m, t, j))
     return humans, with_search_candidates(humans, conditions, cfg.basis, placeholder=True)
