@@ -137,7 +137,9 @@ def program_key(parts: Any, args: tuple) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def compile_traced(jitted, args: tuple, parts: Any, compiler_options: dict | None = None):
+def compile_traced(
+    jitted, args: tuple, parts: Any, compiler_options: dict | None = None, on_traced=None
+):
     """``jitted.lower(*args).compile()``, reusing the traced program of an earlier process.
 
     ``jitted``: a ``jax.jit`` function; ``parts``: a JSON-able description of everything its
@@ -145,17 +147,23 @@ def compile_traced(jitted, args: tuple, parts: Any, compiler_options: dict | Non
     digest); ``compiler_options``: those of ``jitted``'s jit (they are not part of a traced
     program). Without a compilation cache directory: ``jitted.lower(*args).compile()``. With one,
     the program is exported once (``jax.export``) and always compiled from the export, so the
-    persistent cache finds the same program in every process.
+    persistent cache finds the same program in every process. ``on_traced()``: called between
+    tracing and compiling (Python tracing holds the GIL, XLA's compile does not: the cue for
+    another thread to trace meanwhile).
     """
     folder = traced_cache_dir()
     if folder is None:
-        return jitted.lower(*args).compile()
-    path = folder / f"{program_key(parts, args)}{_SUFFIX}"
-    exported = _load(path)
-    if exported is None:
-        exported = jax.export.export(jitted)(*args)
-        _save(path, exported)
-    return jax.jit(exported.call, compiler_options=compiler_options).lower(*args).compile()
+        lowered = jitted.lower(*args)
+    else:
+        path = folder / f"{program_key(parts, args)}{_SUFFIX}"
+        exported = _load(path)
+        if exported is None:
+            exported = jax.export.export(jitted)(*args)
+            _save(path, exported)
+        lowered = jax.jit(exported.call, compiler_options=compiler_options).lower(*args)
+    if on_traced is not None:
+        on_traced()
+    return lowered.compile()
 
 
 class TracedProgram:

@@ -28,7 +28,7 @@ trajectories with an IK solver (sec. 2). No such recording ships with this proje
   2005; Lacquaniti & Soechting 1982). The preference moves from rest with the hand's progress;
 - joint trajectories: `ik.solve_ik_trajectory` at T evenly spaced values of u (warm-started scan,
   limits shrunk by ``limit_margin_deg``), then a C2 cubic spline in u evaluated at the progress of
-  the T time samples; cost ``0.5 int |tau|^2 dt`` (eq. 5, `objective.torque_cost`).
+  the T time samples; cost ``0.5 int |tau|^2 dt`` (eq. 5, `objective.CostProgram`).
 
 Trials that miss their path or catch point by more than ``catch_tolerance`` or touch the shrunk
 limits (a clamped joint has a kink) are rejected. Each round draws ``oversample * count``
@@ -54,7 +54,7 @@ from evojax_motion.database import Database, human_mask, make_database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
 from evojax_motion.ik import solve_ik_trajectory
-from evojax_motion.objective import torque_cost
+from evojax_motion.objective import CostProgram
 from evojax_motion.precision import exact_matmuls
 from evojax_motion.robot import Robot
 from evojax_motion.timegrid import derivatives, make_time_grid
@@ -320,7 +320,6 @@ class _Trials(NamedTuple):
     duration: _Array  # (P,)
     target: _Array  # (P, 3) catch point
     final_pos: _Array  # (P, 3) hand at the last sample (FK)
-    cost: _Array  # (P,)
     track_error: _Array  # (P,) largest hand error along the path [m]
     margin: _Array  # (P, J) smallest distance to the true limits [rad]
     speed_ratio: _Array  # (P,) largest |qd| / velocity limit
@@ -572,7 +571,6 @@ def _simulate(
         duration=duration,
         target=target,
         final_pos=hand[:, -1],
-        cost=jax.vmap(functools.partial(torque_cost, dyn, grid))(q, duration),
         track_error=track_error,
         margin=jnp.minimum(jnp.min(q - rob.lower, axis=1), jnp.min(rob.upper - q, axis=1)),
         speed_ratio=jnp.max(jnp.abs(qd) / rob.velocity_limit, axis=(1, 2)),
@@ -587,7 +585,7 @@ def _accept(trials: _Trials, settings: DemoSettings) -> np.ndarray:
     """(P,) bool: finite, on the path and the catch point, clear of the IK's shrunk limits."""
     miss = np.linalg.norm(trials.final_pos - trials.target, axis=-1)
     touch = trials.margin.min(axis=1) <= math.radians(settings.limit_margin_deg) + LIMIT_TOUCH_TOL
-    finite = np.isfinite(trials.q).all(axis=(1, 2)) & np.isfinite(trials.cost)
+    finite = np.isfinite(trials.q).all(axis=(1, 2)) & np.isfinite(trials.duration)
     return (
         finite
         & (miss <= settings.catch_tolerance)
@@ -602,6 +600,8 @@ def generate_demonstrations(
     settings: DemoSettings,
     key: jax.Array | None = None,
     cache_parts: Any = None,
+    on_traced=None,
+    costs: CostProgram | None = None,
 ) -> tuple[Database, dict]:
     """``settings.count`` synthetic catching demonstrations of ``robot`` and a report.
 
@@ -614,6 +614,10 @@ def generate_demonstrations(
     cache_parts: what `compile_cache.traced_program` keys the simulation by besides its
       arguments (the config sections and robot model behind ``robot``, ``dyn`` and
       ``settings``); None compiles it in this process only.
+    on_traced: called once the simulation is traced, before it compiles
+      (`compile_cache.compile_traced`).
+    costs: the `objective.CostProgram` of ``dyn`` for ``settings.samples`` and at least
+      ``settings.count`` rows that computes the eq. 5 costs (a run's own; default: one made here).
     Raises ``UserError`` when ``max_rounds`` rounds do not yield ``count`` valid trials.
     """
     t_start = time.perf_counter()
@@ -642,11 +646,14 @@ def generate_demonstrations(
             t0 = time.perf_counter()
             statics = (dyn, settings.samples, settings.ik_iters)
             if cache_parts is None:
-                compiled = _simulate.lower(*statics, *args).compile()
+                lowered = _simulate.lower(*statics, *args)
+                if on_traced is not None:
+                    on_traced()
+                compiled = lowered.compile()
             else:
                 program = jax.jit(functools.partial(_simulate, *statics))
                 parts = {"program": "demos._simulate", "parts": cache_parts}
-                compiled = compile_cache.compile_traced(program, args, parts)
+                compiled = compile_cache.compile_traced(program, args, parts, None, on_traced)
             compile_s = time.perf_counter() - t0
         trials = _Trials(*(np.asarray(a) for a in jax.device_get(compiled(*args))))
         ok = _accept(trials, settings)
@@ -661,13 +668,21 @@ def generate_demonstrations(
             "inside the robot's reach"
         )
     good = _Trials(*(np.concatenate(a)[: settings.count] for a in zip(*chosen)))
-    db = make_database(good.q, good.duration, good.final_pos, good.cost)
+    if costs is None:
+        costs = CostProgram(dyn, make_time_grid(settings.samples), settings.count, cache_parts)
+    cost = costs(good.q, good.duration)[0]
+    if not np.isfinite(cost).all():  # finite, in-range motions: not expected
+        raise UserError(
+            f"demos: {int((~np.isfinite(cost)).sum())} synthesised demonstrations have a "
+            "non-finite torque cost (eq. 5); check the robot model's inertias"
+        )
+    db = make_database(good.q, good.duration, good.final_pos, cost)
     counts = {"candidates_tried": (rnd + 1) * pool, "candidates_valid": n_valid}
     timing = {"compile_s": compile_s, "wall_s": time.perf_counter() - t_start}
-    return db, _report(robot, settings, res, good, counts, timing)
+    return db, _report(robot, settings, res, good, cost, counts, timing)
 
 
-def _report(robot, settings, res, good: _Trials, counts: dict, timing: dict) -> dict:
+def _report(robot, settings, res, good: _Trials, cost, counts: dict, timing: dict) -> dict:
     r = res.region
     description = (
         f"{settings.count} synthetic human-like catching demonstrations of robot {robot.name!r} "
@@ -714,7 +729,7 @@ def _report(robot, settings, res, good: _Trials, counts: dict, timing: dict) -> 
         "max_end_speed_rad_s": float(good.end_speed.max()),
         "asymmetry_range": [float(good.asymmetry.min()), float(good.asymmetry.max())],
         "curvature_range": [float(good.curvature.min()), float(good.curvature.max())],
-        "cost_range": [float(good.cost.min()), float(good.cost.max())],
+        "cost_range": [float(cost.min()), float(cost.max())],
         **{k: round(v, 3) for k, v in timing.items()},
     }
 

@@ -9,10 +9,14 @@ N m): the time average of ``|tau_j|`` summed over the joints, ``sum_j (1/D) int 
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from evojax_motion.dynamics import Dynamics
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.timegrid import TimeGrid, derivatives
 
 
@@ -37,3 +41,42 @@ def torque_sum(grid: TimeGrid, tau: jnp.ndarray) -> jnp.ndarray:
     """Time-averaged absolute torque summed over joints [N m]. ``tau: (T, J)`` -> scalar."""
     w = jnp.asarray(grid.w, tau.dtype)
     return jnp.sum(w[:, None] * jnp.abs(tau))
+
+
+class CostProgram:
+    """``costs(q (n, T, J), duration (n,)) -> (eq. 5 cost (n,), Fig. 5 torque sum (n,))`` for any
+    n <= ``rows``: one compiled program of ``rows`` trajectories (padded with resting ones) that
+    serves both the human costs and the human-only baseline of a run. ``cache``:
+    `compile_cache.traced_program`'s ``parts`` (e.g. `workflow.cache_parts` of a run), to
+    keep the traced program across processes; None: in this process only.
+    `precompile` compiles it for trajectories of ``samples`` x ``joints`` before the data exist.
+    """
+
+    def __init__(self, dyn, grid, rows: int, cache: Any = None):
+        from evojax_motion.compile_cache import traced_program
+
+        def one(q, d):
+            tau = trajectory_torques(dyn, grid, q, d)
+            return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
+
+        @jax.jit
+        @exact_matmuls
+        def trajectory_costs(q, d):
+            return jax.vmap(one)(q, d)
+
+        self.rows = rows
+        self._batch = traced_program(trajectory_costs, cache)
+
+    def precompile(self, samples: int, joints: int) -> None:
+        f32 = np.dtype(np.float32)
+        shapes = ((self.rows, samples, joints), (self.rows,))
+        self._batch.precompile(*(jax.ShapeDtypeStruct(s, f32) for s in shapes))
+
+    def __call__(self, q, duration):
+        n = q.shape[0]
+        q_pad = np.zeros((self.rows, *q.shape[1:]), np.float32)
+        q_pad[:n] = q
+        d_pad = np.ones(self.rows, np.float32)
+        d_pad[:n] = duration
+        cost, tsum = self._batch(q_pad, d_pad)
+        return np.asarray(cost)[:n], np.asarray(tsum)[:n]

@@ -22,21 +22,22 @@ for bit. Every file is written atomically (temporary file + ``os.replace``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from evojax_motion.errors import UserError
-from evojax_motion.precision import exact_matmuls
 
 if TYPE_CHECKING:
     from evojax_motion.config import Config
+    from evojax_motion.objective import CostProgram
 
 CONDITIONS_STREAM = 1  # fold_in index of the condition set's key (seed -> streams)
 CONFIG_FILE, ROBOT_FILE, METRICS_FILE = "config.yaml", "robot.xml", "metrics.jsonl"
@@ -209,49 +210,6 @@ def _from_state_tree(tree: dict):
     return Database(**tree["db"]), conditions_from_tree(tree["conditions"]), int(tree["generation"])
 
 
-class CostProgram:
-    """``costs(q (n, T, J), duration (n,)) -> (eq. 5 cost (n,), Fig. 5 torque sum (n,))`` for any
-    n <= ``rows``: one compiled program of ``rows`` trajectories (padded with resting ones) that
-    serves both the human costs and the human-only baseline of a run. ``cache``:
-    `workflow.cache_parts` of the run, to keep the traced program across processes.
-    `precompile` compiles it for trajectories of ``samples`` x ``joints`` before the data exist.
-    """
-
-    def __init__(self, dyn, grid, rows: int, cache: Any = None):
-        import jax
-
-        from evojax_motion.compile_cache import traced_program
-        from evojax_motion.objective import cost_from_torques, torque_sum, trajectory_torques
-
-        def one(q, d):
-            tau = trajectory_torques(dyn, grid, q, d)
-            return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
-
-        @jax.jit
-        @exact_matmuls
-        def trajectory_costs(q, d):
-            return jax.vmap(one)(q, d)
-
-        self.rows = rows
-        self._batch = traced_program(trajectory_costs, cache)
-
-    def precompile(self, samples: int, joints: int) -> None:
-        import jax
-
-        f32 = np.dtype(np.float32)
-        shapes = ((self.rows, samples, joints), (self.rows,))
-        self._batch.precompile(*(jax.ShapeDtypeStruct(s, f32) for s in shapes))
-
-    def __call__(self, q, duration):
-        n = q.shape[0]
-        q_pad = np.zeros((self.rows, *q.shape[1:]), np.float32)
-        q_pad[:n] = q
-        d_pad = np.ones(self.rows, np.float32)
-        d_pad[:n] = duration
-        cost, tsum = self._batch(q_pad, d_pad)
-        return np.asarray(cost)[:n], np.asarray(tsum)[:n]
-
-
 def human_only_baseline(costs, conditions) -> dict:
     """Eq. 5 cost and Fig. 5 torque sum of the human-only interpolations, averaged over the
     conditions: what the demonstrations alone give before any evolution (``conditions.human_q``).
@@ -277,70 +235,85 @@ def _log(msg: str) -> None:
 # ---------------------------------------------------------------------------------- the run
 
 
-def initial_state(cfg: Config, robot, dyn):
+class SetupPrograms(NamedTuple):
+    """`initial_state`'s programs for demonstrations of known ``sizes`` (`setup_programs`)."""
+
+    sizes: tuple[int, int, int]  # (demonstrations, samples, joints)
+    grid: Any  # timegrid.TimeGrid of the samples
+    costs: CostProgram
+    conditions: Any  # conditions.ConditionPrograms
+
+    def precompile(self) -> None:
+        """Compile them for ``sizes``, before the demonstrations exist."""
+        n, t, j = self.sizes
+        self.costs.precompile(t, j)
+        self.conditions.precompile(n, t, j)
+
+
+def setup_programs(cfg: Config, robot, dyn, sizes: tuple[int, ...]) -> SetupPrograms:
+    """The time grid, `CostProgram` and condition draw (`conditions.condition_programs`) of a
+    run of ``cfg`` with ``sizes = (demonstrations, samples, joints)``."""
+    from evojax_motion.conditions import condition_programs
+    from evojax_motion.objective import CostProgram
+    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.workflow import cache_parts
+
+    n, t, j = (int(x) for x in sizes)
+    parts = cache_parts(cfg, robot)
+    grid = make_time_grid(t)
+    costs = CostProgram(dyn, grid, max(n, cfg.evolution.conditions), parts)
+    draw = condition_programs(dyn, robot, cfg.evolution, cfg.basis, grid, parts)
+    return SetupPrograms((n, t, j), grid, costs, draw)
+
+
+def initial_state(cfg: Config, robot, dyn, setup: SetupPrograms | None = None, on_traced=None):
     """Generation 0 of ``cfg``: ``(db, conditions, meta, baseline, timings)``.
 
     The human database (``demos_file`` or synthetic demonstrations), each primitive's eq. 5 cost
     with this run's dynamics, the condition set drawn with the key ``fold_in(key(seed), 1)``, the
     database of capacity ``n_human + m`` with empty evolved slots, and `human_only_baseline`.
+    ``setup``: `setup_programs` made (and perhaps being compiled) beforehand, used where its
+    sizes are the demonstrations'. ``on_traced()``: called once, when the synthesis of the
+    demonstrations is traced, else when they are read (`workflow.demonstrations`).
     Writes nothing.
     """
     import jax
 
-    from evojax_motion.compile_cache import Background
-    from evojax_motion.conditions import condition_programs, make_conditions
+    from evojax_motion.conditions import make_conditions
     from evojax_motion.database import Database, nonfinite_rows
     from evojax_motion.evolution import init_evolved_slots, with_search_candidates
-    from evojax_motion.timegrid import make_time_grid
     from evojax_motion.workflow import cache_parts, demonstrations
 
     t0 = time.perf_counter()
-    # First: a key is a few tiny XLA programs, compiled in no time before the compiles below
-    # start to share the cores (then a second each, on the critical path).
+    # First: a key is a few tiny XLA programs, compiled in no time before other compiles start
+    # to share the cores (then a second each).
     key = jax.random.fold_in(jax.random.key(cfg.seed), CONDITIONS_STREAM)
-    parts = cache_parts(cfg, robot)
-    m = cfg.evolution.conditions
+    called: list[bool] = []
 
-    def setup_programs(n: int, t: int):
-        """The time grid, `CostProgram` and `condition_programs` for n demonstrations of t."""
-        grid = make_time_grid(t)
-        costs = CostProgram(dyn, grid, max(n, m), parts)
-        return grid, costs, condition_programs(dyn, robot, cfg.evolution, cfg.basis, grid, parts)
+    def traced():
+        if on_traced is not None and not called:
+            called.append(True)
+            on_traced()
 
-    expected = expected_sizes(cfg, robot)
-    setup = None
-    if expected is not None:  # the setup's programs compile while the demonstrations are made
-        n, t, j = expected
-        grid, costs, programs = setup_programs(n, t)
-
-        def precompile():
-            try:
-                costs.precompile(t, j)
-                programs.precompile(n, t, j)
-            except Exception:  # the same compile in the foreground reports it
-                pass
-
-        setup = Background(precompile)
-    try:
-        humans, meta = demonstrations(cfg, robot, dyn, parts)  # valid human rows only
-        check_samples(cfg, humans.q.shape[1])
-        if expected is None or humans.q.shape != (n, t, j):
-            grid, costs, programs = setup_programs(*humans.q.shape[:2])
-        humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
-        bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
-        for i in bad:
-            msg = f"demonstration {i}: NaN/inf in its trajectory, condition or cost; not used"
-            _log(f"warning: {msg}")
-        if bad.size == humans.valid.size:
-            raise UserError("demonstrations: expected at least one finite demonstration, got none")
-        humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
-        t1 = time.perf_counter()
-        conditions = make_conditions(
-            humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, programs=programs
-        )
-    finally:
-        if setup is not None:
-            setup.wait()  # nothing left compiling behind an error or the next phase
+    synthesis_costs = None if setup is None else setup.costs  # rows >= demos.count
+    humans, meta = demonstrations(cfg, robot, dyn, cache_parts(cfg, robot), traced, synthesis_costs)
+    traced()
+    check_samples(cfg, humans.q.shape[1])
+    if setup is None or humans.q.shape != setup.sizes:
+        setup = setup_programs(cfg, robot, dyn, humans.q.shape)
+    grid, costs = setup.grid, setup.costs
+    humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
+    bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
+    for i in bad:
+        msg = f"demonstration {i}: NaN/inf in its trajectory, condition or cost; not used"
+        _log(f"warning: {msg}")
+    if bad.size == humans.valid.size:
+        raise UserError("demonstrations: expected at least one finite demonstration, got none")
+    humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
+    t1 = time.perf_counter()
+    conditions = make_conditions(
+        humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, programs=setup.conditions
+    )
     conditions = jax.tree_util.tree_map(np.asarray, conditions)
     db = _numpy_db(init_evolved_slots(humans, conditions))
     conditions = with_search_candidates(db, conditions, cfg.basis)
@@ -412,9 +385,9 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resume = check_run_dir(out, config_to_dict(cfg), resume)
     robot, dyn = make_robot_dynamics(cfg)
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
-    # A new run compiles its step from here on, in the background: the imports below (orbax
-    # alone 0.3 s) and the setup happen meanwhile.
-    early = None if resuming else _compile_early(cfg, robot, dyn)
+    # A new run compiles its step and setup programs in the background from the moment the
+    # demonstrations' synthesis is traced (or they are read).
+    early = None if resuming else EarlyCompile(cfg, robot, dyn)
     try:
         from tqdm.auto import tqdm
 
@@ -434,14 +407,15 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             metrics = [dict(r) for r in restored.meta.get("metrics", [])][:start]
             baseline = dict(restored.meta.get("baseline", {}))
         else:  # every UserError of the inputs is raised here, before anything is written
-            db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn)
+            setup, cue = (None, None) if early is None else (early.setup, early.start)
+            db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, setup, cue)
             start, metrics = 0, []
     except BaseException:
         if early is not None:
             early.wait()  # its thread ends before the error reaches the user
         raise
     if early is not None:
-        early_step = early.result()
+        early_step = early.step()
 
     out.mkdir(parents=True, exist_ok=True)
     for leftover in _temporaries(out):  # of a run killed in the middle of a write
@@ -551,14 +525,14 @@ def expected_sizes(cfg: Config, robot) -> tuple[int, int, int] | None:
     return n, t, len(robot.joint_names)
 
 
-def expected_inputs(cfg: Config, robot):
+def expected_inputs(cfg: Config, robot, sizes: tuple[int, int, int] | None = None):
     """``(db, conditions)`` of zeros shaped and typed as `initial_state` will return them
-    (`expected_sizes`; None where those are unknown)."""
+    (``sizes``: `expected_sizes`, found here by default; None where those are unknown)."""
     from evojax_motion.conditions import conditions_from_tree, conditions_template
     from evojax_motion.database import make_database
     from evojax_motion.evolution import with_search_candidates
 
-    sizes = expected_sizes(cfg, robot)
+    sizes = expected_sizes(cfg, robot) if sizes is None else sizes
     if sizes is None:
         return None
     n, t, j = sizes
@@ -568,28 +542,59 @@ def expected_inputs(cfg: Config, robot):
     return humans, with_search_candidates(humans, conditions, cfg.basis, placeholder=True)
 
 
-def _compile_early(cfg: Config, robot, dyn):
-    """The generation step compiled for `expected_inputs` in a background thread, started
-    before the demonstrations and conditions are made (both mostly XLA compiles too: on two
-    cores they overlap). `result()`: ``(avals, compiled)``, or None if it failed (the step is
-    then compiled again in the foreground, which reports the error); None where nothing was
-    started (several devices, no generations, an unreadable demonstrations file)."""
-    from evojax_motion.compile_cache import Background, signature
-    from evojax_motion.parallel import resolve_devices
+class EarlyCompile:
+    """What a new run will compile, compiled in background threads from the sizes known before
+    the demonstrations exist (`expected_sizes`): the generation step for `expected_inputs`
+    (one device, some generations) and `setup_programs`. `start` launches them; `train` calls
+    it when the synthesis of the demonstrations is traced (so that the step's long trace does
+    not hold the GIL back from it), or once they are read. On two cores the compiles overlap
+    each other and the synthesis."""
 
-    if cfg.evolution.generations == 0 or len(resolve_devices(cfg.parallel.devices)) > 1:
-        return None
-    expected = expected_inputs(cfg, robot)
-    if expected is None:
-        return None
+    def __init__(self, cfg: Config, robot, dyn):
+        from evojax_motion.parallel import resolve_devices
 
-    def compile_expected():
-        try:
-            return signature(expected), compile_generation_step(cfg, robot, dyn, *expected)
-        except Exception:
-            return None
+        self._args = (cfg, robot, dyn)
+        sizes = expected_sizes(cfg, robot)
+        self.setup = None if sizes is None else setup_programs(cfg, robot, dyn, sizes)
+        one_device = len(resolve_devices(cfg.parallel.devices)) == 1
+        step = sizes is not None and cfg.evolution.generations > 0 and one_device
+        self._expected = expected_inputs(cfg, robot, sizes) if step else None
+        self._threads: list = []
 
-    return Background(compile_expected)
+    def start(self) -> None:
+        """Launch the compiles (once; nothing where the sizes are unknown)."""
+        from evojax_motion.compile_cache import Background, signature
+
+        if self._threads:
+            return
+        if self._expected is not None:
+            expected = self._expected
+
+            def compile_step():
+                try:
+                    return signature(expected), compile_generation_step(*self._args, *expected)
+                except Exception:  # compiled again in the foreground, which reports it
+                    return None
+
+            self._threads.append(Background(compile_step))
+        if self.setup is not None:
+            setup = self.setup
+
+            def precompile():
+                with contextlib.suppress(Exception):  # ditto
+                    setup.precompile()
+
+            self._threads.append(Background(precompile))
+
+    def step(self):
+        """``(avals, compiled)`` of the step, or None (not compiled here, or it failed)."""
+        self.start()
+        return self._threads[0].result() if self._expected is not None else None
+
+    def wait(self) -> None:
+        """Until every compile has ended (before an error may end the process)."""
+        for thread in self._threads:
+            thread.wait()
 
 
 def meta_of(out: Path):

@@ -72,12 +72,14 @@ def build_demonstrations(cfg: Config) -> tuple[Database, DatabaseMeta, dict]:
 
 
 def demonstrations(
-    cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None
+    cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None, on_traced=None, costs=None
 ) -> tuple[Database, DatabaseMeta]:
     """``(db, meta)`` of `build_demonstrations` for the config's ``robot`` and ``dyn``, without
     the summary: the valid human rows only. ``cache``: `cache_parts` of ``cfg``, to keep the
     synthesis's traced program and its result across processes while the compilation cache is
-    on (`compile_cache.result_path`; None: synthesised and compiled in this process only)."""
+    on (`compile_cache.result_path`; None: synthesised and compiled in this process only).
+    ``on_traced``, ``costs``: see `demos.generate_demonstrations` (only where they are
+    synthesised)."""
     from evojax_motion.compile_cache import result_path
     from evojax_motion.demos import generate_demonstrations
 
@@ -94,7 +96,7 @@ def demonstrations(
             print(f"warning: cached demonstrations unreadable ({e}); synthesising", file=sys.stderr)
             path.unlink(missing_ok=True)
     key = jax.random.key(cfg.demos.seed)
-    db, report = generate_demonstrations(robot, dyn, cfg.demos, key, cache)
+    db, report = generate_demonstrations(robot, dyn, cfg.demos, key, cache, on_traced, costs)
     description = str(report.get("description", "synthetic human-like demonstrations"))
     meta = DatabaseMeta.of_robot(robot, synthetic=True, description=description)
     if path is not None:
