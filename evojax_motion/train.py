@@ -377,7 +377,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
     from evojax_motion.compile_cache import signature
     from evojax_motion.config import config_to_dict, config_to_yaml
-    from evojax_motion.workflow import make_robot_dynamics
+    from evojax_motion.workflow import make_robot_dynamics, synthesises
 
     t_start = time.perf_counter()
     evo, tr = cfg.evolution, cfg.train
@@ -385,9 +385,11 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resume = check_run_dir(out, config_to_dict(cfg), resume)
     robot, dyn = make_robot_dynamics(cfg)
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
-    # A new run compiles its step and setup programs in the background from the moment the
-    # demonstrations' synthesis is traced (or they are read).
+    # A new run compiles its step and setup programs in background threads: from now on, or,
+    # where the demonstrations are synthesised, once their synthesis is traced.
     early = None if resuming else EarlyCompile(cfg, robot, dyn)
+    if early is not None and not synthesises(cfg, robot):
+        early.start()
     try:
         from tqdm.auto import tqdm
 
@@ -546,9 +548,9 @@ class EarlyCompile:
     """What a new run will compile, compiled in background threads from the sizes known before
     the demonstrations exist (`expected_sizes`): the generation step for `expected_inputs`
     (one device, some generations) and `setup_programs`. `start` launches them; `train` calls
-    it when the synthesis of the demonstrations is traced (so that the step's long trace does
-    not hold the GIL back from it), or once they are read. On two cores the compiles overlap
-    each other and the synthesis."""
+    it at once, or, where the demonstrations are synthesised (`workflow.synthesises`), when
+    their synthesis is traced (so that the step's long trace does not hold the GIL back from
+    it). On two cores the compiles overlap each other and the synthesis."""
 
     def __init__(self, cfg: Config, robot, dyn):
         from evojax_motion.parallel import resolve_devices

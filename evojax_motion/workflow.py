@@ -71,6 +71,22 @@ def build_demonstrations(cfg: Config) -> tuple[Database, DatabaseMeta, dict]:
     return db, meta, summarize_demonstrations(db, robot)
 
 
+def kept_demonstrations(cache: Any):
+    """Where `demonstrations` keeps the synthesised demonstrations of a run with `cache_parts`
+    ``cache`` (None: not kept)."""
+    from evojax_motion.compile_cache import result_path
+
+    return None if cache is None else result_path({"result": "demonstrations", "parts": cache})
+
+
+def synthesises(cfg: Config, robot: Robot) -> bool:
+    """Whether `demonstrations` will synthesise (no ``demos_file``, none kept for ``cfg``)."""
+    if cfg.demos_file is not None:
+        return False
+    path = kept_demonstrations(cache_parts(cfg, robot))
+    return path is None or not path.is_file()
+
+
 def demonstrations(
     cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None, on_traced=None, costs=None
 ) -> tuple[Database, DatabaseMeta]:
@@ -80,7 +96,6 @@ def demonstrations(
     on (`compile_cache.result_path`; None: synthesised and compiled in this process only).
     ``on_traced``, ``costs``: see `demos.generate_demonstrations` (only where they are
     synthesised)."""
-    from evojax_motion.compile_cache import result_path
     from evojax_motion.demos import generate_demonstrations
 
     if cfg.demos_file is not None:
@@ -88,7 +103,7 @@ def demonstrations(
         check_database_matches_robot(meta, robot, cfg.demos_file)
         keep = human_mask(db)
         return Database(*(np.asarray(a)[keep] for a in db)), meta
-    path = None if cache is None else result_path({"result": "demonstrations", "parts": cache})
+    path = kept_demonstrations(cache)
     if path is not None and path.is_file():
         try:
             return load_database(path)

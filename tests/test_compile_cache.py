@@ -144,6 +144,29 @@ def test_traced_program_names_its_function_and_takes_prng_keys(tmp_path):
     assert len(list((tmp_path / compile_cache.TRACED_DIR).glob("*.jaxexport"))) == 2
 
 
+def test_precompiled_program_is_the_one_called_even_from_another_thread(tmp_path):
+    """`TracedProgram.precompile` from shapes (in a `Background` thread, as `train` does) makes
+    the program a later call with arrays of those shapes runs: one trace, one compile, the right
+    result, ``out_info`` shaped like it; a call racing the precompile waits for it."""
+    x, n = np.arange(4, dtype=np.float32), np.asarray(3, np.int32)
+    for folder in (tmp_path, None):  # kept on disk, or not (no cache directory)
+        traces = []
+
+        def double(x, n, traces=traces):  # a new function: JAX's own trace cache knows none
+            traces.append(1)
+            return 2.0 * x + n
+
+        with cache_at(folder):
+            program = compile_cache.traced_program(jax.jit(double), "parts")
+            specs = (jax.ShapeDtypeStruct((4,), np.float32), jax.ShapeDtypeStruct((), np.int32))
+            background = compile_cache.Background(program.precompile, *specs)
+            np.testing.assert_array_equal(np.asarray(program(x, n)), 2.0 * x + 3)  # may wait
+            compiled = background.result()
+            assert compiled.out_info.shape == (4,) and compiled.out_info.dtype == np.float32
+            np.testing.assert_array_equal(np.asarray(program(x, n)), 2.0 * x + 3)
+            assert len(traces) == 1
+
+
 def test_key_changes_with_parts_shapes_precision_and_x64():
     args = _args()
     key = compile_cache.program_key("p", args)

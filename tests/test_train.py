@@ -202,6 +202,16 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     missing = config_from_dict(config_to_dict(cfg), [f"demos_file={tmp_path / 'none.npz'}"])
     assert expected_inputs(missing, robot) is None  # initial_state reports the missing file
 
+    # a new run compiles the setup's programs from the expected sizes, in the background:
+    # they must be the very programs `initial_state` then calls (no second signature)
+    from evojax_motion.train import expected_sizes, setup_programs
+
+    setup = setup_programs(cfg, robot, dyn, expected_sizes(cfg, robot))
+    setup.precompile()
+    initial_state(cfg, robot, dyn, setup)
+    programs = [setup.costs._batch, *setup.conditions[:3]]
+    assert [len(p._compiled) for p in programs] == [1, 1, 1, 1]
+
     # many conditions: the neighbour search's candidate lists are inputs of the step too
     monkeypatch.setattr(evolution, "SEARCH_CANDIDATES_MIN_CONDITIONS", 1)
     _, listed, *_ = initial_state(cfg, robot, dyn)
