@@ -46,9 +46,9 @@ def torque_sum(grid: TimeGrid, tau: jnp.ndarray) -> jnp.ndarray:
 class CostProgram:
     """``costs(q (n, T, J), duration (n,)) -> (eq. 5 cost (n,), Fig. 5 torque sum (n,))`` for any
     n <= ``rows``: one compiled program of ``rows`` trajectories (padded with resting ones) that
-    serves both the human costs and the human-only baseline of a run. ``cache``:
-    `compile_cache.traced_program`'s ``parts`` (e.g. `workflow.cache_parts` of a run), to
-    keep the traced program across processes; None: in this process only.
+    serves a run's synthesised demonstrations, its human costs and its human-only baseline.
+    ``cache``: `compile_cache.traced_program`'s ``parts`` (e.g. `workflow.cache_parts` of a
+    run), to keep the traced program across processes; None: in this process only.
     `precompile` compiles it for trajectories of ``samples`` x ``joints`` before the data exist.
     """
 
@@ -74,6 +74,8 @@ class CostProgram:
 
     def __call__(self, q, duration):
         n = q.shape[0]
+        if n > self.rows:
+            raise ValueError(f"CostProgram of {self.rows} rows: got {n} trajectories")
         q_pad = np.zeros((self.rows, *q.shape[1:]), np.float32)
         q_pad[:n] = q
         d_pad = np.ones(self.rows, np.float32)
