@@ -144,14 +144,15 @@ def compile_traced(
 
     ``jitted``: a ``jax.jit`` function; ``parts``: a JSON-able description of everything its
     closure depends on that the module doc's key does not cover (e.g. config sections, a model
-    digest); ``compiler_options``: those of ``jitted``'s jit (they are not part of a traced
-    program). Without a compilation cache directory: ``jitted.lower(*args).compile()``. With one,
-    the program is exported once (``jax.export``) and always compiled from the export, so the
-    persistent cache finds the same program in every process. ``on_traced()``: called between
-    tracing and compiling (Python tracing holds the GIL, XLA's compile does not: the cue for
-    another thread to trace meanwhile).
+    digest), or None where the caller cannot name it (nothing is then kept on disk);
+    ``compiler_options``: those of ``jitted``'s jit (they are not part of a traced program).
+    Without a compilation cache directory (or ``parts``): ``jitted.lower(*args).compile()``.
+    With one, the program is exported once (``jax.export``) and always compiled from the export,
+    so the persistent cache finds the same program in every process. ``on_traced()``: called
+    between tracing and compiling (Python tracing holds the GIL, XLA's compile does not: the cue
+    for another thread to trace meanwhile).
     """
-    folder = traced_cache_dir()
+    folder = None if parts is None else traced_cache_dir()
     if folder is None:
         lowered = jitted.lower(*args)
     else:
@@ -181,7 +182,7 @@ class TracedProgram:
     def __init__(self, jitted, parts: Any, compiler_options: dict | None = None):
         self._jitted, self._options = jitted, compiler_options
         name = f"{jitted.__module__}:{jitted.__qualname__}"  # two programs, same arguments
-        self._parts = None if parts is None else {"program": name, "parts": parts}
+        self._parts = None if parts is None else {"program": name, "parts": parts}  # None: not kept
         self._compiled: dict[str, concurrent.futures.Future] = {}
         self._lock = threading.Lock()
 
@@ -200,10 +201,7 @@ class TracedProgram:
             except BaseException:  # the other thread's compile failed: this one tries again
                 return self.precompile(*args)
         try:
-            if self._parts is None:
-                compiled = self._jitted.lower(*args).compile()
-            else:
-                compiled = compile_traced(self._jitted, args, self._parts, self._options)
+            compiled = compile_traced(self._jitted, args, self._parts, self._options)
         except BaseException as e:
             with self._lock:  # a later call compiles again (and reports the error itself)
                 del self._compiled[sig]

