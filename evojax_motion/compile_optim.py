@@ -96,6 +96,8 @@ DIRECTION_RTOL = 1e-5
 RADIUS_INIT, RADIUS_MIN, RADIUS_MAX = 0.3, 1e-7, 1e2
 STEP_SCALES = (1.0, 0.25, 0.0625)  # fractions of the trust-region step tried in one iteration
 RHO_ACCEPT, RHO_BAD, RHO_GOOD = 1e-4, 0.25, 0.75  # ratio of actual to predicted decrease
+# Default `OptimSettings.max_batch` (chosen on an H100: docs/scaling.md).
+MAX_BATCH = 8192
 SECULAR_ITERS = 12  # Newton iterations on the trust-region secular equation
 EIG_FLOOR = 1e-6  # eigenvalues below this fraction of the largest count as zero (float32 noise)
 
@@ -133,6 +135,10 @@ class OptimSettings:
       unchanged, p95 0.22 % instead of 0.046 % (``benchmarks/results/optimality_cpu_fast.json``).
     - ``bc_leak`` [rad per rad]: BC directions that 1 rad RMS of motion changes by less than this
       are free, the others are met exactly (`compile_interp.BC_LEAK`).
+    - ``max_batch``: the most problems (conditions x starts) optimised at once; a larger batch is
+      split into equal chunks optimised one after another (`optimise_in_chunks`). On an H100 a
+      batch's time per problem doubled between 10,000 and 30,000 problems at once (its working
+      set no longer fits the GPU's cache, `docs/scaling.md`); null: the whole batch at once.
     """
 
     n_components: int = 4
@@ -149,6 +155,7 @@ class OptimSettings:
     start_scale: float = 1.0
     seed: int = 0
     bc_leak: float = BC_LEAK
+    max_batch: int | None = MAX_BATCH
 
     def __post_init__(self):
         _check(
@@ -201,6 +208,12 @@ class OptimSettings:
         _check(self.start_scale >= 0, "start_scale", "a number >= 0", self.start_scale)
         _check(isinstance(self.seed, int), "seed", "an integer", self.seed)
         _check(0 < self.bc_leak < 1, "bc_leak", "a number in (0, 1)", self.bc_leak)
+        _check(
+            self.max_batch is None or (isinstance(self.max_batch, int) and self.max_batch >= 1),
+            "max_batch",
+            "an integer >= 1 or null",
+            self.max_batch,
+        )
 
     def resolved(self) -> OptimSettings:
         """These settings with ``max_iters`` made concrete (`DEFAULT_ITERS` where it is null)."""
@@ -645,6 +658,33 @@ _SOLVERS: dict[str, Callable[..., _Result]] = {
 }
 
 
+def optimise_in_chunks(solve, problems, z0, free, max_batch: int | None) -> _Result:
+    """``solve(problems, z0, free) -> _Result`` over a batch of B problems, in equal chunks of at
+    most ``max_batch`` run one after another (``lax.map``), or at once where ``B <= max_batch``
+    (or it is None).
+
+    ``problems``: pytree of ``(B, ...)`` arrays; ``z0, free: (B, n)``. A problem's result does not
+    depend on the others in its batch (the solvers stop a converged problem where it is; only
+    rounding may differ between batch sizes), so the chunks' results, concatenated, are the
+    batch's. The last chunk is filled up with copies of the last problem, whose results are
+    dropped.
+    """
+    b = z0.shape[0]
+    if max_batch is None or b <= max_batch:
+        return solve(problems, z0, free)
+    n_chunks = -(-b // max_batch)
+    size = -(-b // n_chunks)
+    pad = n_chunks * size - b
+
+    def split(a):
+        a = jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a
+        return a.reshape(n_chunks, size, *a.shape[1:])
+
+    chunks = jax.tree_util.tree_map(split, (problems, z0, free))
+    res = jax.lax.map(lambda args: solve(*args), chunks)
+    return jax.tree_util.tree_map(lambda a: a.reshape(n_chunks * size, *a.shape[2:])[:b], res)
+
+
 def compile_optimisation(
     basis: Basis,
     boundary: Boundary,
@@ -687,11 +727,14 @@ def compile_optimisation(
     free = probs.mask.reshape(n_s * c, j * k)
     z0 = jnp.where(free, z_starts.reshape(n_s * c, j * k), 0.0)
 
-    def fun(zf, i):
-        prob = jax.tree_util.tree_map(lambda a: a[i], probs)
-        return objective(zf.reshape(j, k), prob)[0]
+    def solve(chunk: Problem, z0, free) -> _Result:
+        def fun(zf, i):
+            prob = jax.tree_util.tree_map(lambda a: a[i], chunk)
+            return objective(zf.reshape(j, k), prob)[0]
 
-    res = solver(fun, z0, free, settings)
+        return solver(fun, z0, free, settings)
+
+    res = optimise_in_chunks(solve, probs, z0, free, settings.max_batch)
 
     def evaluate(zf, prob: Problem):
         z = zf.reshape(j, k)

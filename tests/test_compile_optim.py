@@ -1,6 +1,7 @@
 """Movement compiler via optimisation (eq. 3-5): gradients, optimality vs float64 SLSQP, BCs,
 limits, bad inputs, no recompilation. A 3-joint version of the shipped arm keeps compiles short."""
 
+import functools
 import sys
 from pathlib import Path
 
@@ -15,9 +16,11 @@ from evojax_motion.compile_interp import Boundary
 from evojax_motion.compile_optim import (
     DEFAULT_ITERS,
     OptimSettings,
+    _Result,
     cpu_fast_path,
     make_objective,
     make_optimisation_compiler,
+    optimise_in_chunks,
     problem_trajectory,
     reduced_problems,
     search_nodes,
@@ -54,6 +57,9 @@ TOL_JACOBI = 1e-4  # relative: optimum cost on the accelerators' Jacobi path vs 
 # relative: BFGS optimum through the CPU fast path (scalar RNEA, fusion emitters off) vs the
 # default program; the same iterations up to float32 rounding of a differently fused program
 TOL_FAST_PATH = 1e-3
+# Chunked vs whole batch: the same problems, rounding may differ with the batch size (float32).
+TOL_CHUNKS = 1e-5  # relative cost
+TOL_CHUNKS_Q = 1e-3  # rad
 
 
 def synthetic_demos(robot, dyn, rng):
@@ -108,7 +114,7 @@ def test_settings_validation():
     bad = [
         ("method", "sgd"), ("max_iters", 0), ("learning_rate", 0.0), ("limit_margin", -0.1),
         ("n_starts", 0), ("hessian_every", 0), ("bc_leak", 2.0), ("n_components", 0),
-        ("max_free_per_joint", 5), ("search_stride", 0),
+        ("max_free_per_joint", 5), ("search_stride", 0), ("max_batch", 0), ("max_batch", 2.5),
     ]  # fmt: skip
     for field, value in bad:
         with pytest.raises(ValueError, match=f"^{field}: expected"):
@@ -205,6 +211,49 @@ def test_second_call_does_not_recompile(setup):
     shifted = s["boundary"]._replace(duration=s["boundary"].duration * 1.1)
     jax.block_until_ready(fn(s["basis"], shifted))
     assert fn._cache_size() == before == 1
+
+
+def test_chunks_cover_the_batch_in_order():
+    """`optimise_in_chunks` hands each problem to exactly one chunk of at most ``max_batch``
+    and returns the results in the batch's order (a solve that tags each row with its problem)."""
+    sizes = []
+
+    def solve(problems, z0, free):
+        sizes.append(z0.shape[0])
+        return _Result(
+            z=z0 + problems[:, None], f=problems, iterations=free[:, 0], converged=free[:, 1]
+        )
+
+    b, n = 11, 2
+    problems = jnp.arange(b, dtype=jnp.float32) * 10
+    z0 = jnp.ones((b, n))
+    free = jnp.tile(jnp.arange(b)[:, None] % 3 == jnp.arange(n), (1, 1))
+    for max_batch, chunk in [(None, b), (b, b), (4, 4), (5, 4), (10, 6), (1, 1)]:
+        sizes.clear()
+        chunked = functools.partial(optimise_in_chunks, solve, max_batch=max_batch)
+        res = jax.jit(chunked)(problems, z0, free)
+        assert sizes == [chunk], (max_batch, sizes)
+        np.testing.assert_array_equal(np.asarray(res.z), np.asarray(z0 + problems[:, None]))
+        np.testing.assert_array_equal(np.asarray(res.f), np.asarray(problems))
+        np.testing.assert_array_equal(np.asarray(res.iterations), np.asarray(free[:, 0]))
+        np.testing.assert_array_equal(np.asarray(res.converged), np.asarray(free[:, 1]))
+
+
+def test_chunked_batch_gives_the_whole_batch_results(setup):
+    """The fixture's 8 conditions (bad ones among them) optimised in chunks of 3 find what the
+    whole batch found: each problem's result does not depend on its batch (up to rounding)."""
+    s = setup
+    settings = OptimSettings(max_batch=3)
+    out = make_optimisation_compiler(s["dyn"], s["grid"], s["lower"], s["upper"], settings)(
+        s["basis"], s["boundary"]
+    )
+    ref = s["out"]
+    for name in ("finite", "within_limits", "converged"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(out, name)), np.asarray(getattr(ref, name))
+        )
+    np.testing.assert_allclose(np.asarray(out.cost), np.asarray(ref.cost), rtol=TOL_CHUNKS)
+    np.testing.assert_allclose(np.asarray(out.q), np.asarray(ref.q), atol=TOL_CHUNKS_Q)
 
 
 @pytest.mark.parametrize("stride", [1, 3, 5])
