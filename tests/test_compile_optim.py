@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import evojax_motion.basis as basis_module
+import evojax_motion.compile_optim as optim_module
 from evojax_motion.basis import pca_basis, select_neighbours
 from evojax_motion.compile_interp import Boundary
 from evojax_motion.compile_optim import (
@@ -239,16 +240,21 @@ def test_chunks_cover_the_batch_in_order():
         np.testing.assert_array_equal(np.asarray(res.converged), np.asarray(free[:, 1]))
 
 
-def test_chunked_batch_gives_the_whole_batch_results(setup):
-    """The fixture's 8 conditions (bad ones among them) optimised in chunks of 3 find what the
-    whole batch found: each problem's result does not depend on its batch (up to rounding)."""
+def test_accelerator_loop_in_chunks_gives_the_whole_batch_results(setup, monkeypatch):
+    """The fixture's 8 conditions (bad ones among them) optimised as on accelerators (a loop of
+    fixed trip count, `compile_optim.fixed_trip_loops`) and in chunks of 3 find what the whole
+    batch found with the CPU's loop: passes after the batch is done change nothing, and each
+    problem's result does not depend on its batch (up to rounding)."""
     s = setup
+    calls = []
+    monkeypatch.setattr(optim_module, "fixed_trip_loops", lambda: calls.append(1) or True)
     settings = OptimSettings(max_batch=3)
     out = make_optimisation_compiler(s["dyn"], s["grid"], s["lower"], s["upper"], settings)(
         s["basis"], s["boundary"]
     )
+    assert calls  # traced the accelerators' loop
     ref = s["out"]
-    for name in ("finite", "within_limits", "converged"):
+    for name in ("finite", "within_limits", "converged", "iterations"):
         np.testing.assert_array_equal(
             np.asarray(getattr(out, name)), np.asarray(getattr(ref, name))
         )
