@@ -36,9 +36,11 @@ lint: $(VENV)/.installed-dev
 	$(VENV)/bin/mypy
 
 # --dist loadscope: a module's tests share one worker, so its module-scoped fixtures (compiled
-# steps, training runs) are built once, not once per worker.
+# steps, training runs) are built once, not once per worker; tests/conftest.py makes modules that
+# build the same programs one unit and orders the units heaviest first (--no-loadscope-reorder:
+# in that order, not by their numbers of tests).
 test: lint
-	$(VENV)/bin/pytest -q -n 2 --dist loadscope --durations=15
+	$(VENV)/bin/pytest -q -n 2 --dist loadscope --no-loadscope-reorder --durations=15
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

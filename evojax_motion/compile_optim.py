@@ -596,6 +596,7 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         pending=jnp.asarray(True),
     )
     if fixed:  # max_iters proposals take at most max_iters + 1 passes; later ones change nothing
+        assert settings.max_iters is not None  # `OptimSettings.resolved`
         passes = settings.max_iters + 1
         st = jax.lax.fori_loop(0, passes, lambda _, s: _select(s["pending"], body(s), s), state)
     else:

@@ -274,7 +274,8 @@ def initial_state(cfg: Config, robot, dyn, setup: SetupPrograms | None = None, o
     database of capacity ``n_human + m`` with empty evolved slots, and `human_only_baseline`.
     ``setup``: `setup_programs` made (and perhaps being compiled) beforehand, used where its
     sizes are the demonstrations'. ``on_traced()``: called once, when the synthesis of the
-    demonstrations is traced, else when they are read (`workflow.demonstrations`).
+    demonstrations is traced, else once they are read and checked (`workflow.demonstrations`,
+    `check_samples`).
     Writes nothing.
     """
     import jax
@@ -297,8 +298,8 @@ def initial_state(cfg: Config, robot, dyn, setup: SetupPrograms | None = None, o
 
     synthesis_costs = None if setup is None else setup.costs  # rows >= demos.count
     humans, meta = demonstrations(cfg, robot, dyn, cache_parts(cfg, robot), traced, synthesis_costs)
-    traced()
     check_samples(cfg, humans.q.shape[1])
+    traced()
     if setup is None or humans.q.shape != setup.sizes:
         setup = setup_programs(cfg, robot, dyn, humans.q.shape)
     grid, costs = setup.grid, setup.costs
@@ -377,7 +378,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
     from evojax_motion.compile_cache import signature
     from evojax_motion.config import config_to_dict, config_to_yaml
-    from evojax_motion.workflow import make_robot_dynamics, synthesises
+    from evojax_motion.workflow import make_robot_dynamics
 
     t_start = time.perf_counter()
     evo, tr = cfg.evolution, cfg.train
@@ -385,11 +386,10 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resume = check_run_dir(out, config_to_dict(cfg), resume)
     robot, dyn = make_robot_dynamics(cfg)
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
-    # A new run compiles its step and setup programs in background threads: from now on, or,
-    # where the demonstrations are synthesised, once their synthesis is traced.
+    # A new run compiles its step and setup programs in background threads, from the moment its
+    # demonstrations are read and checked or their synthesis is traced (`initial_state`): not
+    # before, so that a run refused over its demonstrations file says so at once.
     early = None if resuming else EarlyCompile(cfg, robot, dyn)
-    if early is not None and not synthesises(cfg, robot):
-        early.start()
     try:
         from tqdm.auto import tqdm
 
@@ -547,10 +547,11 @@ def expected_inputs(cfg: Config, robot, sizes: tuple[int, int, int] | None = Non
 class EarlyCompile:
     """What a new run will compile, compiled in background threads from the sizes known before
     the demonstrations exist (`expected_sizes`): the generation step for `expected_inputs`
-    (one device, some generations) and `setup_programs`. `start` launches them; `train` calls
-    it at once, or, where the demonstrations are synthesised (`workflow.synthesises`), when
-    their synthesis is traced (so that the step's long trace does not hold the GIL back from
-    it). On two cores the compiles overlap each other and the synthesis."""
+    (one device, some generations) and `setup_programs`. `start` launches them; `train` has
+    `initial_state` call it once the demonstrations are read and checked, or, where they are
+    synthesised, once their synthesis is traced (so that the step's long trace does not hold
+    the GIL back from it): a run refused over its inputs has compiled nothing. On two cores
+    the compiles overlap each other and the synthesis."""
 
     def __init__(self, cfg: Config, robot, dyn):
         from evojax_motion.parallel import resolve_devices

@@ -79,14 +79,6 @@ def kept_demonstrations(cache: Any):
     return None if cache is None else result_path({"result": "demonstrations", "parts": cache})
 
 
-def synthesises(cfg: Config, robot: Robot) -> bool:
-    """Whether `demonstrations` will synthesise (no ``demos_file``, none kept for ``cfg``)."""
-    if cfg.demos_file is not None:
-        return False
-    path = kept_demonstrations(cache_parts(cfg, robot))
-    return path is None or not path.is_file()
-
-
 def demonstrations(
     cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None, on_traced=None, costs=None
 ) -> tuple[Database, DatabaseMeta]:

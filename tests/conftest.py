@@ -44,3 +44,69 @@ def pytest_unconfigure(config):
     """The session's XLA cache goes with the session (the process that made it removes it)."""
     if _OWN_CACHE:
         shutil.rmtree(os.environ["EVOJAX_TEST_XLA_CACHE"], ignore_errors=True)
+
+
+# ------------------------------------------------------------------ scheduling on xdist workers
+# `make test` runs `pytest -n 2 --dist loadscope --no-loadscope-reorder`. Its work units are the
+# test modules (a module's fixtures are built once, on one worker), except where modules build
+# the same programs: those form one unit (`SHARED_GROUPS`, `pytest_xdist_make_scheduler`), so
+# they run one after another on one worker and the later ones find the first one's compiles in
+# the session's XLA cache (side by side on two workers, both would compile them). The units are
+# handed out heaviest first (`GROUP_SECONDS`: seconds in a `make test` run on 2 CPU cores,
+# 2026-11-25; `pytest_collection_modifyitems` orders the tests so), so that no long unit starts
+# last while the other worker has nothing left to do. (Not `--dist loadgroup` with `xdist_group`
+# marks: pytest-xdist 3.8 puts the group into `item._nodeid`, which pytest 9 no longer reads, so
+# every test would be a unit of its own and module fixtures would be built on both workers.)
+SHARED_GROUPS = {
+    # configs/tiny.yaml: test_train trains it first (setup programs, generation step, synthesised
+    # demonstrations); the report of test_report's synthetic run (the tiny run's settings and
+    # sizes) draws what the notebook, which trains the tiny run again, draws too
+    "tiny": (
+        "test_train", "test_numerical_faults", "test_demos", "test_report", "test_notebook",
+    ),
+    # online_support's cached query, reach checker and catcher (`functools.cache`: per process)
+    "online": ("test_online", "test_catching", "test_export"),
+}  # fmt: skip
+GROUP_SECONDS = {
+    "tiny": 300, "test_dynamics": 265, "test_compile_optim": 245, "online": 115,
+    "test_parallel": 89, "test_evolution": 78, "test_examples": 70, "test_import": 66,
+    "test_basis": 50, "test_compile_interp": 30, "test_ik": 21, "test_retarget": 17,
+    "test_bad_input": 15,
+}  # fmt: skip
+_GROUP_OF = {m: g for g, modules in SHARED_GROUPS.items() for m in modules}
+
+
+def _unit(module: str) -> str:
+    """The work unit of a test module (its name without ``.py``)."""
+    return _GROUP_OF.get(module, module)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Units heaviest first; a unit's modules in `SHARED_GROUPS` order; a module's tests as
+    collected."""
+
+    def rank(indexed):
+        index, item = indexed
+        module = item.path.stem
+        unit = _unit(module)
+        within = SHARED_GROUPS[unit].index(module) if unit in SHARED_GROUPS else 0
+        return (-GROUP_SECONDS.get(unit, 0), unit, within, index)
+
+    items[:] = [item for _, item in sorted(enumerate(items), key=rank)]
+
+
+@pytest.hookimpl(optionalhook=True)  # a pytest-xdist hook
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadscope`` with `SHARED_GROUPS` as single units (`_unit`)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    if config.getvalue("dist") != "loadscope" or not hasattr(LoadScopeScheduling, "_split_scope"):
+        return None  # (another pytest-xdist: its own loadscope, modules as units)
+
+    class UnitScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            module = path.rsplit("/", 1)[-1].removesuffix(".py")
+            return _unit(module) if module in _GROUP_OF else super()._split_scope(nodeid)
+
+    return UnitScheduling(config, log)

@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 
 from evojax_motion.cli import main
 from evojax_motion.config import Config, config_to_dict, load_config
+from evojax_motion.train import EarlyCompile
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "tiny.yaml"
@@ -113,6 +114,24 @@ def _no_compile_cache():
         os.environ["EVOJAX_MOTION_JAX_CACHE"] = old
 
 
+STARTED: list = []  # `train.EarlyCompile.start` calls since the last `check_refused` began
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _record_background_compiles():
+    """A run refused over its inputs must not have started its background compiles
+    (`train.EarlyCompile`): it would wait for them before saying what was wrong."""
+    original = EarlyCompile.start
+
+    def start(self):
+        STARTED.append(self)
+        return original(self)
+
+    EarlyCompile.start = start
+    yield
+    EarlyCompile.start = original
+
+
 def _fill(text: str, d: Path, s: Path) -> str:
     return text.replace("{D}", str(d)).replace("{S}", str(s))
 
@@ -124,6 +143,7 @@ def check_refused(argv: list[str], names: list[str], inputs: Path, scratch: Path
     argv = [_fill(a, inputs, s) for a in argv]
     names = [_fill(n, inputs, s) for n in names]
     before_inputs = _snapshot(inputs)
+    STARTED.clear()
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
@@ -134,6 +154,7 @@ def check_refused(argv: list[str], names: list[str], inputs: Path, scratch: Path
     lines = text.splitlines()
     where = f"argv={argv}\nstderr={text!r}\nstdout={out.getvalue()[-500:]!r}"
     assert status == 2, where
+    assert not STARTED, f"started compiling before refusing: {where}"
     assert len(lines) == 1 and lines[0].startswith("error: "), where
     assert "Traceback" not in text + out.getvalue(), where
     assert any(n in lines[0] for n in names), f"names none of {names}: {where}"

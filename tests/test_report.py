@@ -20,11 +20,12 @@ from PIL import Image
 
 from evojax_motion import render as rnd
 from evojax_motion import report
-from evojax_motion.config import config_from_dict, config_to_yaml
+from evojax_motion.config import config_to_yaml, load_config
 from evojax_motion.database import DatabaseMeta, make_database, save_database
 from evojax_motion.robot import load_robot
 
-T, N_HUMAN, M = 24, 40, 4
+T, N_HUMAN, M = 24, 40, 6
+TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
 PIXEL_STD_MIN = 8.0  # a blank or single-colour image has std ~0; our figures are > 20
 SILHOUETTE_IOU_MIN = (
     0.8  # stick figure vs MuJoCo, same frame: measured 0.90; a 40 deg wrong azimuth 0.45
@@ -82,14 +83,11 @@ def make_fake_run(path: Path, generations: int = 2) -> Path:
         return db
 
     path.mkdir(parents=True)
-    cfg = config_from_dict(
-        {
-            "demos": {"count": N_HUMAN, "samples": T},
-            "basis": {"neighbours": 6, "radius": 0.3},
-            "compiler": {"method": "adam", "max_iters": 4},
-            "evolution": {"conditions": M, "generations": generations},
-        }
-    )
+    # configs/tiny.yaml's settings and sizes: the report then compiles what the notebook's
+    # figures of the tiny run compile (the session's XLA cache serves both; conftest runs them
+    # on one worker)
+    cfg = load_config(TINY, [f"evolution.generations={generations}"])
+    assert (cfg.demos.count, cfg.demos.samples, cfg.evolution.conditions) == (N_HUMAN, T, M)
     (path / "config.yaml").write_text(config_to_yaml(cfg))
     (path / "robot.xml").write_text(robot.mjcf)
     zeros = np.zeros((M, T, j), np.float32)
@@ -192,7 +190,7 @@ def test_bad_options_write_nothing(fake_run, tmp_path):
     from evojax_motion.errors import UserError
 
     out = tmp_path / "out"
-    with pytest.raises(UserError, match=r"--condition: expected an index in 0\.\.3"):
+    with pytest.raises(UserError, match=rf"--condition: expected an index in 0\.\.{M - 1}"):
         report.make_report(fake_run, out, condition=M)
     with pytest.raises(UserError, match="--joint: expected one of"):
         report.make_report(fake_run, out, joint="knee")

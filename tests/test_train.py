@@ -7,6 +7,7 @@ import glob
 import itertools
 import json
 import os
+import select
 import subprocess
 import sys
 from pathlib import Path
@@ -315,15 +316,17 @@ def test_stored_costs_match_mujoco(tiny_run):
     assert checked == db.valid.sum() > cfg.demos.count  # humans and evolved slots alike
 
 
-# Runs `evojax-motion` and SIGKILLs itself at one of the run's file-system operations (the
-# moments at which what is on disk changes): argv = index, before|after, count file, CLI args.
-# Index -1: no kill; the number of operations is written to the count file at the end.
+# A fork server of `evojax-motion` runs: for each request (a JSON line on stdin: index,
+# before|after, count file, log file, CLI args) it forks a process that runs the CLI and SIGKILLs
+# itself at one of the run's file-system operations (the moments at which what is on disk
+# changes), and answers the process's exit status (-9: killed). Index -1: no kill; the number of
+# operations is written to the count file at the end. Every run is a process of its own, as from
+# the shell; the server only imports what a run imports once, not in each of them (seconds each).
 _KILL_DRIVER = """
-import os, shutil, signal, sys
+import json, os, shutil, signal, sys, traceback
 
-index, when, count_file = int(sys.argv[1]), sys.argv[2], sys.argv[3]
 cache = os.environ["JAX_COMPILATION_CACHE_DIR"]  # XLA's cache files are not the run's
-seen = 0
+index, when, seen = -1, "none", 0
 
 
 def hook(real):
@@ -349,10 +352,31 @@ shutil.rmtree = hook(shutil.rmtree)
 
 from evojax_motion.cli import main
 
-status = main(sys.argv[4:])
-with open(count_file, "w") as f:
-    f.write(str(seen))
-sys.exit(status)
+# what a run imports (the JAX backend starts in each forked run: nothing runs here)
+import jax.numpy, orbax.checkpoint, yaml  # noqa: E401
+import evojax_motion.checkpoint, evojax_motion.train, evojax_motion.workflow  # noqa: E401
+
+for line in sys.stdin:
+    index, when, count_file, log, *argv = json.loads(line)
+    pid = os.fork()
+    if pid == 0:
+        seen = 0
+        out = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+        os.dup2(out, 1)
+        os.dup2(out, 2)
+        status = 1
+        try:
+            status = main(argv)
+            with open(count_file, "w") as f:
+                f.write(str(seen))
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(status)
+    _, wait_status = os.waitpid(pid, 0)
+    print(os.waitstatus_to_exitcode(wait_status), flush=True)
 """
 N_KILLS = 20
 
@@ -375,13 +399,42 @@ def _check_visible_files(out: Path) -> None:
 KILL_ARGS = ["train", str(TINY), "--quiet", "--set", "train.plots=false"]
 
 
-def _launch(driver: Path, out: Path, index: int, when: str):
-    """`_KILL_DRIVER` on ``KILL_ARGS --out out``: ``(CompletedProcess, count file)``. The
-    subprocess inherits the session's XLA cache (conftest), so it reuses the fixtures' compiles."""
-    count = out.with_name(f"{out.name}.count")
-    cmd = [sys.executable, str(driver), str(index), when, str(count), *KILL_ARGS, "--out", str(out)]
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
-    return subprocess.run(cmd, env=env, capture_output=True, timeout=600), count
+class _KillServer:
+    """`_KILL_DRIVER` in a subprocess. It inherits the session's XLA cache (conftest), so its
+    runs reuse the fixtures' compiles."""
+
+    def __init__(self, folder: Path):
+        driver = folder / "driver.py"
+        driver.write_text(_KILL_DRIVER)
+        env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+        self.errors = folder / "driver.err"  # the server's own (each run has its log file)
+        with self.errors.open("w") as err:
+            self.proc = subprocess.Popen(
+                [sys.executable, str(driver)],
+                env=env,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=err,
+                text=True,
+            )
+
+    def launch(self, out: Path, index: int, when: str) -> tuple[int, Path, str]:
+        """A run of ``KILL_ARGS --out out``: ``(exit status, count file, its stdout + stderr)``."""
+        count, log = out.with_name(f"{out.name}.count"), out.with_name(f"{out.name}.log")
+        request = [index, when, str(count), str(log), *KILL_ARGS, "--out", str(out)]
+        self.proc.stdin.write(json.dumps(request) + "\n")
+        self.proc.stdin.flush()
+        ready, _, _ = select.select([self.proc.stdout], [], [], 600)
+        line = self.proc.stdout.readline() if ready else ""
+        if not line:  # the server died or the run hangs
+            self.proc.kill()
+            pytest.fail(f"kill server: no answer\n{self.errors.read_text()[-3000:]}")
+        return int(line), count, log.read_text() if log.exists() else ""
+
+    def close(self) -> None:
+        self.proc.stdin.close()  # the server's loop ends
+        self.proc.wait(timeout=60)
+        self.proc.stdout.close()
 
 
 def _assert_same_run(ref_out: Path, out: Path) -> None:
@@ -399,14 +452,14 @@ def _assert_same_run(ref_out: Path, out: Path) -> None:
 
 @pytest.fixture(scope="module")
 def kill_driver(tmp_path_factory):
-    """``(driver path, number of file-system operations of an uninterrupted run, its folder)``:
+    """``(kill server, number of file-system operations of an uninterrupted run, its folder)``:
     configs/tiny.yaml run to the end in another process by `_KILL_DRIVER` (no kill)."""
     folder = tmp_path_factory.mktemp("kills")
-    driver = folder / "driver.py"
-    driver.write_text(_KILL_DRIVER)
-    proc, count = _launch(driver, folder / "whole", -1, "none")
-    assert proc.returncode == 0, proc.stderr.decode()[-3000:]
-    return driver, int(count.read_text()), folder / "whole"
+    server = _KillServer(folder)
+    status, count, log = server.launch(folder / "whole", -1, "none")
+    assert status == 0, log[-3000:]
+    yield server, int(count.read_text()), folder / "whole"
+    server.close()
 
 
 @pytest.mark.slow
@@ -425,7 +478,7 @@ def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(tiny_run, kil
     the uninterrupted run's, bit for bit."""
     from evojax_motion.cli import main
 
-    driver, n_ops, _ = kill_driver
+    server, n_ops, _ = kill_driver
     assert n_ops > 4 * N_KILLS, n_ops
     rng = np.random.default_rng(20)
     kills = [
@@ -434,8 +487,8 @@ def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(tiny_run, kil
     ]
     for k, (index, when) in enumerate(kills):
         out = tmp_path / f"killed{k}"
-        proc, _ = _launch(driver, out, index, when)
-        assert proc.returncode == -9, (index, when, proc.stderr.decode()[-3000:])
+        status, _, log = server.launch(out, index, when)
+        assert status == -9, (index, when, log[-3000:])
         _check_visible_files(out)
         resume = ["--resume"] if (out / "config.yaml").is_file() else []
         assert main([*KILL_ARGS, "--out", str(out), *resume]) == 0, (index, when)
