@@ -378,7 +378,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
     from evojax_motion.compile_cache import signature
     from evojax_motion.config import config_to_dict, config_to_yaml
-    from evojax_motion.workflow import make_robot_dynamics
+    from evojax_motion.workflow import make_robot_dynamics, synthesises
 
     t_start = time.perf_counter()
     evo, tr = cfg.evolution, cfg.train
@@ -386,10 +386,12 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resume = check_run_dir(out, config_to_dict(cfg), resume)
     robot, dyn = make_robot_dynamics(cfg)
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
-    # A new run compiles its step and setup programs in background threads, from the moment its
-    # demonstrations are read and checked or their synthesis is traced (`initial_state`): not
-    # before, so that a run refused over its demonstrations file says so at once.
+    # A new run compiles its step and setup programs in background threads: from now on, or,
+    # where the demonstrations are synthesised, once their synthesis is traced. (Nothing for a
+    # demonstrations file that `initial_state` will refuse: `expected_sizes`.)
     early = None if resuming else EarlyCompile(cfg, robot, dyn)
+    if early is not None and not synthesises(cfg, robot):
+        early.start()
     try:
         from tqdm.auto import tqdm
 
@@ -512,18 +514,20 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
 def expected_sizes(cfg: Config, robot) -> tuple[int, int, int] | None:
     """``(demonstrations, samples, joints)`` that `initial_state` will meet, known before the
     demonstrations are made: ``demos.count`` and ``demos.samples``, or the valid human rows of
-    ``demos_file``; None when the file cannot be read (`initial_state` then says why).
-    A demonstration dropped as non-finite makes the real count smaller: compare before use."""
-    from evojax_motion.database import human_mask, load_database
+    ``demos_file``; None when `initial_state` will refuse the file (it then says why:
+    `workflow.read_demonstrations_file`, `check_samples`). A demonstration dropped as
+    non-finite makes the real count smaller: compare before use."""
+    from evojax_motion.workflow import read_demonstrations_file
 
     if cfg.demos_file is None:
         n, t = cfg.demos.count, cfg.demos.samples
     else:
         try:
-            file_db, _ = load_database(cfg.demos_file)
+            file_db, _ = read_demonstrations_file(cfg, robot)
+            check_samples(cfg, file_db.q.shape[1])
         except UserError:
             return None
-        n, t = int(human_mask(file_db).sum()), file_db.q.shape[1]
+        n, t = file_db.q.shape[0], file_db.q.shape[1]
     return n, t, len(robot.joint_names)
 
 
@@ -547,11 +551,12 @@ def expected_inputs(cfg: Config, robot, sizes: tuple[int, int, int] | None = Non
 class EarlyCompile:
     """What a new run will compile, compiled in background threads from the sizes known before
     the demonstrations exist (`expected_sizes`): the generation step for `expected_inputs`
-    (one device, some generations) and `setup_programs`. `start` launches them; `train` has
-    `initial_state` call it once the demonstrations are read and checked, or, where they are
-    synthesised, once their synthesis is traced (so that the step's long trace does not hold
-    the GIL back from it): a run refused over its inputs has compiled nothing. On two cores
-    the compiles overlap each other and the synthesis."""
+    (one device, some generations) and `setup_programs`. `start` launches them; `train` calls
+    it at once, or, where the demonstrations are synthesised (`workflow.synthesises`), when
+    their synthesis is traced (so that the step's long trace does not hold the GIL back from
+    it). On two cores the compiles overlap each other and the synthesis. Nothing is compiled
+    for a demonstrations file that the run will refuse (no sizes): a refused run would wait
+    for its compiles before saying what was wrong."""
 
     def __init__(self, cfg: Config, robot, dyn):
         from evojax_motion.parallel import resolve_devices

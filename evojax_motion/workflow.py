@@ -79,6 +79,26 @@ def kept_demonstrations(cache: Any):
     return None if cache is None else result_path({"result": "demonstrations", "parts": cache})
 
 
+def synthesises(cfg: Config, robot: Robot) -> bool:
+    """Whether `demonstrations` will synthesise (no ``demos_file``, none kept for ``cfg``)."""
+    if cfg.demos_file is not None:
+        return False
+    path = kept_demonstrations(cache_parts(cfg, robot))
+    return path is None or not path.is_file()
+
+
+def read_demonstrations_file(cfg: Config, robot: Robot) -> tuple[Database, DatabaseMeta]:
+    """``(db, meta)``: the valid human rows of ``cfg.demos_file``, a database of ``robot``'s
+    joints (`load_database`'s checks; `UserError` naming the file otherwise)."""
+    path = cfg.demos_file
+    if path is None:
+        raise ValueError("read_demonstrations_file: the config has no demos_file")
+    db, meta = load_database(path)
+    check_database_matches_robot(meta, robot, path)
+    keep = human_mask(db)
+    return Database(*(np.asarray(a)[keep] for a in db)), meta
+
+
 def demonstrations(
     cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None, on_traced=None, costs=None
 ) -> tuple[Database, DatabaseMeta]:
@@ -91,10 +111,7 @@ def demonstrations(
     from evojax_motion.demos import generate_demonstrations
 
     if cfg.demos_file is not None:
-        db, meta = load_database(cfg.demos_file)
-        check_database_matches_robot(meta, robot, cfg.demos_file)
-        keep = human_mask(db)
-        return Database(*(np.asarray(a)[keep] for a in db)), meta
+        return read_demonstrations_file(cfg, robot)
     path = kept_demonstrations(cache)
     if path is not None and path.is_file():
         try:
