@@ -137,8 +137,9 @@ class OptimSettings:
       are free, the others are met exactly (`compile_interp.BC_LEAK`).
     - ``max_batch``: the most problems (conditions x starts) optimised at once; a larger batch is
       split into equal chunks optimised one after another (`optimise_in_chunks`). On an H100 a
-      batch's time per problem doubled between 10,000 and 30,000 problems at once (its working
-      set no longer fits the GPU's cache, `docs/scaling.md`); null: the whole batch at once.
+      batch's time per problem doubled between 7,500 and 15,000 problems at once (most likely
+      its working set leaving the GPU's cache; not proven, `docs/scaling.md`); null: the whole
+      batch at once.
     """
 
     n_components: int = 4
@@ -615,10 +616,11 @@ def fixed_trip_loops() -> bool:
 
     On a GPU, a ``while`` loop with a computed condition and a ``lax.cond`` each wait for their
     predicate on the host, once per iteration: in an H100 trace at 1,000 conditions, 82 gaps of
-    ~85 us per generation, a third of its time (`docs/scaling.md`). A loop of known trip count
-    runs without them; passes after the batch is done are computed and discarded (``where``), so
-    the iterates are the same. On CPU there is nothing to wait for, and stopping early saves the
-    discarded passes.
+    ~85 us on average per generation, about 30 % of its time. A loop of known trip count runs
+    without them; passes after the batch is done are computed and discarded (``where``), so the
+    iterates are the same. The selects cost kernels of their own: generations got 6 % (300
+    conditions) to 12 % (1,000) faster, not 30 % (`docs/scaling.md`). On CPU there is nothing to
+    wait for, and stopping early saves the discarded passes.
     """
     return jax.default_backend() != "cpu"
 
