@@ -54,7 +54,11 @@ from evojax_motion.basis import pca_basis, select_neighbours, select_neighbours_
 from evojax_motion.compile_optim import make_optimisation_compiler  # noqa: E402
 from evojax_motion.config import config_from_dict, config_to_dict, load_config  # noqa: E402
 from evojax_motion.timegrid import make_time_grid  # noqa: E402
-from evojax_motion.train import compile_generation_step, initial_state  # noqa: E402
+from evojax_motion.train import (  # noqa: E402
+    compile_generation_step,
+    initial_state,
+    stays_on_device,
+)
 from evojax_motion.workflow import make_robot_dynamics  # noqa: E402
 
 
@@ -94,6 +98,8 @@ def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
     compile_s = time.perf_counter() - t0
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
+    if stays_on_device(cfg):  # as `train` runs its generations
+        db, conds = jax.device_put((db, conds))
     seconds, costs, valid = [], [], []
     for g in range(1, generations + 1):
         valid.append(db.valid)

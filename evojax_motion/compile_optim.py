@@ -26,7 +26,11 @@ Optimisers (``OptimSettings.method``), batched over conditions (and starts):
     only every so many iterations, with damped BFGS updates in between.
   - ``"bfgs"``: the same trust-region loop with a damped-BFGS model instead of the Hessian (no
     second derivatives: ~10x cheaper per iteration on a CPU, but it settles in a worse local
-    minimum than SLSQP in ~15 % of conditions, see the table below).
+    minimum than SLSQP in ~10 % of conditions, see the table below). The model is positive
+    definite, so the step minimises it on the plane of the gradient and the Newton step
+    (`_subspace_step`; Nocedal & Wright, sec. 4.1), from the model and its
+    inverse, updated alike: no eigendecomposition (on GPUs a cuSOLVER call per iteration, 22 %
+    of an iteration at 1,000 conditions on an H100).
   - ``"adam"``: plain ``optax.adam`` in z for ``max_iters`` steps (the paper's projected-gradient
     baseline, kept for comparison).
   - ``"lbfgs"``: ``optax.lbfgs`` with its zoom line search, stopped on the gradient norm.
@@ -41,11 +45,12 @@ Measured (``benchmarks/optimality.py``, 100 conditions of the default synthetic 
 | newton (default, 25 iterations) | -0.006 % | 0.71 % | 12.5 % | 33 |
 | newton, 2 starts | -0.007 % | 0.34 % | 2.3 % | 67 |
 | newton, 4 starts | -0.008 % | 0.001 % | 0.71 % | 218 |
-| bfgs (100 iterations) | -0.001 % | 4.6 % | 12.5 % | 7 |
+| bfgs (100 iterations; subspace step, later run) | -0.003 % | 2.5 % | 12.5 % | 3 |
 | adam, 200 steps, lr 0.1 | 0.19 % | 3.2 % | 6.0 % | 9 |
 | adam, 1000 steps, lr 0.03 | -0.002 % | 0.64 % | 8.7 % | 41 |
 | lbfgs (optax, 60 iterations) | -0.003 % | 0.53 % | 12.5 % | 118 |
 
+The bfgs row: ``optimality_cpu_subspace.json`` (after BFGS got its subspace step, 2026-11-25).
 The paper config (``search_stride: 4``, ``max_free_per_joint: 2``) in a later run of the same
 benchmark (``results/optimality_cpu_fast.json``): median -0.0015 %, p95 0.22 %, max 3.0 %, 15 s
 where the default took 82 s in that run.
@@ -85,8 +90,10 @@ from evojax_motion.precision import exact_matmuls
 from evojax_motion.timegrid import TimeGrid, derivatives
 
 METHODS = ("newton", "bfgs", "adam", "lbfgs")
-# Iteration budget of each method where ``max_iters`` is null (BFGS needs more, cheaper, ones).
-DEFAULT_ITERS = {"newton": 25, "bfgs": 40, "adam": 25, "lbfgs": 25}
+# Iteration budget of each method where ``max_iters`` is null (BFGS needs more, cheaper, ones:
+# with its subspace step, 40 left a median gap to SLSQP of 0.11-0.23 % at paper scale on an
+# H100, 50 gave 0.025 %; `benchmarks/changes.md`).
+DEFAULT_ITERS = {"newton": 25, "bfgs": 50, "adam": 25, "lbfgs": 25}
 # Samples may exceed a joint limit by this much [rad] and still count as within it: float32
 # rounding of a BC that sits exactly on a limit.
 LIMIT_TOL = 1e-5
@@ -97,7 +104,7 @@ RADIUS_INIT, RADIUS_MIN, RADIUS_MAX = 0.3, 1e-7, 1e2
 STEP_SCALES = (1.0, 0.25, 0.0625)  # fractions of the trust-region step tried in one iteration
 RHO_ACCEPT, RHO_BAD, RHO_GOOD = 1e-4, 0.25, 0.75  # ratio of actual to predicted decrease
 # Default `OptimSettings.max_batch` (chosen on an H100: docs/scaling.md).
-MAX_BATCH = 8192
+MAX_BATCH = 4096
 SECULAR_ITERS = 12  # Newton iterations on the trust-region secular equation
 EIG_FLOOR = 1e-6  # eigenvalues below this fraction of the largest count as zero (float32 noise)
 
@@ -138,8 +145,9 @@ class OptimSettings:
     - ``max_batch``: the most problems (conditions x starts) optimised at once; a larger batch is
       split into equal chunks optimised one after another (`optimise_in_chunks`). On an H100 a
       batch's time per problem doubled between 7,500 and 15,000 problems at once (most likely
-      its working set leaving the GPU's cache; not proven, `docs/scaling.md`); null: the whole
-      batch at once.
+      its working set leaving the GPU's cache; not proven), and with BFGS's subspace step
+      chunks of ~4,000 ran 16-22 % faster than of ~7,700 at 30,000 and 100,000 conditions
+      (`docs/scaling.md`); null: the whole batch at once.
     """
 
     n_components: int = 4
@@ -368,6 +376,18 @@ def limit_penalty(w, q, duration, lo, hi, weight) -> jnp.ndarray:
     return weight * duration * jnp.sum(jnp.asarray(w, q.dtype) * jnp.sum(viol, axis=-1))
 
 
+def fused_products() -> bool:
+    """Whether the search objective forms q, qd, qdd at its nodes by elementwise products and a
+    sum (accelerators) or by an einsum (CPU). Read at trace time.
+
+    On an H100 the einsum (a product over the 2 free directions per joint, and in the gradient
+    over the nodes) ran as a GEMM kernel of its own, 37 us of a 309 us optimiser pass at 1,000
+    conditions; as products XLA fuses it into the dynamics' kernels. On 2 CPU cores the products
+    made a paper-scale generation 4-23 % slower in an A/B (`benchmarks/changes.md`).
+    """
+    return jax.default_backend() != "cpu"
+
+
 def make_objective(dyn: Dynamics, lo, hi, weight):
     """``f(z, problem) -> (penalised objective, torque cost)`` for one condition, both by the
     problem's quadrature nodes (`search_nodes`; stride 1: the time grid's, eq. 5 exactly).
@@ -377,9 +397,12 @@ def make_objective(dyn: Dynamics, lo, hi, weight):
     """
 
     def objective(z, problem: Problem):
-        x = problem.node_ls + jnp.einsum(
-            "jf,amjf->amj", z, problem.node_dirs, precision=jax.lax.Precision.HIGHEST
-        )
+        if fused_products():
+            x = problem.node_ls + jnp.sum(z * problem.node_dirs, axis=-1)
+        else:
+            x = problem.node_ls + jnp.einsum(
+                "jf,amjf->amj", z, problem.node_dirs, precision=jax.lax.Precision.HIGHEST
+            )
         tau = jax.vmap(dyn.inverse)(x[0], x[1], x[2])
         w = problem.node_w.astype(tau.dtype)
         cost = 0.5 * problem.duration * jnp.sum(w * jnp.sum(tau**2, -1))
@@ -388,7 +411,7 @@ def make_objective(dyn: Dynamics, lo, hi, weight):
     return objective
 
 
-def _trust_region_step(bm, g, radius):
+def _trust_region_step(bm, g, radius, eig=None):
     """Exact trust-region step of the model ``g.p + p.B.p / 2`` with ``|p| <= radius``, batched.
 
     ``bm (B, n, n)`` symmetric (indefinite allowed), ``g (B, n)``, ``radius (B,)``. With
@@ -397,9 +420,10 @@ def _trust_region_step(bm, g, radius):
     (More-Sorensen: nearly linear in lam, a few Newton iterations converge); in the "hard case"
     (g orthogonal to the lowest eigenvector) the step is completed along that eigenvector.
     Returns ``p``, the predicted decrease ``-(g.p + p.B.p / 2)`` and the Newton decrement
-    ``g.B^-1.g / 2`` (inf where B is not positive definite).
+    ``g.B^-1.g / 2`` (inf where B is not positive definite). ``eig``: ``(e, v)`` of ``bm`` where
+    the caller has them (else `small_eigh`).
     """
-    e, v = small_eigh(bm)  # ascending
+    e, v = small_eigh(bm) if eig is None else eig  # ascending
     tiny = jnp.finfo(e.dtype).tiny
     scale = jnp.max(jnp.abs(e), axis=1, keepdims=True)
     floor = EIG_FLOOR * scale + tiny
@@ -434,6 +458,92 @@ def _trust_region_step(bm, g, radius):
     return p, pred, decrement
 
 
+def _dot_rows(a, b):
+    """``sum(a * b, -1)``: row-wise dot products of batched vectors (elementwise, fusable)."""
+    return jnp.sum(a * b, axis=-1)
+
+
+def _matvec(m, x):
+    """``m (B, n, n) @ x (B, n)`` as elementwise products and a sum (fused by XLA, no GEMM)."""
+    return jnp.sum(m * x[:, None, :], axis=-1)
+
+
+def _bfgs_update(bm, s, y, accept, hm=None):
+    """Powell-damped BFGS update of ``bm (B, n, n)`` where ``accept``; keeps it SPD. With
+    ``hm = bm^-1``, returns ``(bm, hm)`` updated alike (the same update in inverse form)."""
+    bs = jnp.einsum("bij,bj->bi", bm, s)
+    sbs = jnp.sum(s * bs, axis=1)
+    sy = jnp.sum(s * y, axis=1)
+    theta = jnp.where(sy >= 0.2 * sbs, 1.0, 0.8 * sbs / jnp.maximum(sbs - sy, 1e-30))
+    r = theta[:, None] * y + (1.0 - theta[:, None]) * bs
+    sr = jnp.sum(s * r, axis=1)
+    tiny = jnp.finfo(bm.dtype).tiny
+    upd = accept & (sbs > tiny) & (sr > tiny)
+    new = (
+        bm
+        - jnp.einsum("bi,bj->bij", bs, bs) / jnp.where(upd, sbs, 1.0)[:, None, None]
+        + jnp.einsum("bi,bj->bij", r, r) / jnp.where(upd, sr, 1.0)[:, None, None]
+    )
+    new = jnp.where(upd[:, None, None], new, bm)
+    if hm is None:
+        return new
+    rho = (1.0 / jnp.where(upd, sr, 1.0))[:, None, None]
+    hr = _matvec(hm, r)
+    rhr = _dot_rows(r, hr)[:, None, None]
+    ss = s[:, :, None] * s[:, None, :]
+    new_h = hm - rho * (s[:, :, None] * hr[:, None, :] + hr[:, :, None] * s[:, None, :])
+    new_h = new_h + (rho**2 * rhr + rho) * ss
+    return new, jnp.where(upd[:, None, None], new_h, hm)
+
+
+def _eigh_2x2(a, b, c):
+    """Eigenvalues ``(B, 2)`` (ascending) and eigenvectors ``(B, 2, 2)`` (columns) of the
+    symmetric ``[[a, b], [b, c]]``, each ``(B,)``, in closed form (elementwise: no solver call,
+    no loop). The smaller eigenvalue is ``det / larger`` where the larger is positive: unlike
+    ``mean - radius`` it keeps its relative accuracy when the diagonal entries differ by orders
+    of magnitude (as the curvatures of a BFGS model do)."""
+    mean, half = 0.5 * (a + c), 0.5 * (a - c)
+    rad = jnp.hypot(half, b)
+    hi = mean + rad
+    lo = jnp.where(hi > 0, (a * c - b * b) / jnp.where(hi > 0, hi, 1.0), mean - rad)
+    phi = 0.5 * jnp.arctan2(b, half)  # (cos phi, sin phi) belongs to the larger eigenvalue
+    cs, sn = jnp.cos(phi), jnp.sin(phi)
+    v = jnp.stack([jnp.stack([-sn, cs], -1), jnp.stack([cs, sn], -1)], -1)
+    return jnp.stack([lo, hi], -1), v
+
+
+def _subspace_step(bm, hm, g, radius):
+    """Trust-region step of the positive definite model ``g.p + p.B.p / 2`` within ``|p| <=
+    radius`` on the plane of ``g`` and the Newton step ``-B^-1 g`` (two-dimensional subspace
+    minimisation: Byrd, Schnabel & Shultz 1988; Nocedal & Wright, sec. 4.1), batched:
+    ``bm (B, n, n)`` the model, ``hm`` its inverse, ``g (B, n)``, ``radius (B,)``. The plane holds
+    the Newton step (taken where it fits) and the dogleg path; on it the subproblem is solved
+    exactly (`_trust_region_step` on the 2 x 2 model). Returns ``p``, the predicted decrease and
+    the Newton decrement ``g.B^-1.g / 2``, like `_trust_region_step`, without the n x n
+    eigendecomposition (a cuSOLVER call per iteration on GPUs).
+
+    Paper configuration, 100 conditions, 40 iterations, 2 CPU cores, gap to float64 SLSQP:
+    median 0.021 % (the n x n exact step: 0.021 %; the dogleg step: 0.107 %).
+    """
+    tiny = jnp.finfo(g.dtype).tiny
+    pn = -_matvec(hm, g)
+    u1 = -g / jnp.maximum(jnp.sqrt(_dot_rows(g, g)), tiny)[:, None]
+    w = pn - _dot_rows(pn, u1)[:, None] * u1
+    wn = jnp.sqrt(_dot_rows(w, w))
+    # A Newton step (nearly) along -g spans no plane: the second direction is then unused.
+    plane = wn > 1e-4 * jnp.sqrt(_dot_rows(pn, pn))
+    u2 = jnp.where(plane[:, None], w / jnp.maximum(wn, tiny)[:, None], 0.0)
+    bu1, bu2 = _matvec(bm, u1), _matvec(bm, u2)
+    b11, b12 = _dot_rows(u1, bu1), _dot_rows(u1, bu2)
+    b22 = jnp.where(plane, _dot_rows(u2, bu2), b11)
+    b2 = jnp.stack([jnp.stack([b11, b12], -1), jnp.stack([b12, b22], -1)], -2)
+    g2 = jnp.stack([_dot_rows(g, u1), _dot_rows(g, u2)], -1)
+    p2, pred, _ = _trust_region_step(b2, g2, radius, eig=_eigh_2x2(b11, b12, b22))
+    p = p2[:, :1] * u1 + p2[:, 1:] * u2
+    decrement = jnp.where(_dot_rows(g, bu1) < 0, 0.5 * _dot_rows(g, -pn), jnp.inf)
+    return p, pred, decrement
+
+
 def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) -> _Result:
     """Batched trust-region Newton / quasi-Newton on ``fun(z (n,), i) -> scalar`` for B problems.
 
@@ -441,7 +551,11 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
     Hessian is the exact one every ``settings.hessian_every`` iterations and a damped BFGS update
     of it in between (skipped where it would not keep the curvature along the step positive);
     without, it starts as a multiple of the identity (a first step of ``RADIUS_INIT`` along -g)
-    and is only BFGS-updated: no second derivatives at all. The loop runs on the
+    and is only BFGS-updated: no second derivatives at all. An exact Hessian may be indefinite,
+    so its steps solve the trust-region subproblem exactly (`_trust_region_step`, an
+    eigendecomposition per iteration); the BFGS model stays positive definite, and its inverse,
+    updated alike, gives two-dimensional subspace steps (`_subspace_step`: no n x n
+    eigendecomposition). The loop runs on the
     whole batch with an unbatched iteration counter, so the exact Hessian is computed only on the
     iterations that need it (a batched predicate would turn ``lax.cond`` into a select that always
     evaluates both branches).
@@ -463,23 +577,6 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         ok = jnp.all(jnp.isfinite(h), axis=(1, 2))
         return jnp.where(ok[:, None, None], h, eye)
 
-    def bfgs(bm, s, y, accept):
-        """Powell-damped BFGS update of ``bm (B, n, n)`` where ``accept``; keeps it SPD."""
-        bs = jnp.einsum("bij,bj->bi", bm, s)
-        sbs = jnp.sum(s * bs, axis=1)
-        sy = jnp.sum(s * y, axis=1)
-        theta = jnp.where(sy >= 0.2 * sbs, 1.0, 0.8 * sbs / jnp.maximum(sbs - sy, 1e-30))
-        r = theta[:, None] * y + (1.0 - theta[:, None]) * bs
-        sr = jnp.sum(s * r, axis=1)
-        tiny = jnp.finfo(dtype).tiny
-        upd = accept & (sbs > tiny) & (sr > tiny)
-        new = (
-            bm
-            - jnp.einsum("bi,bj->bij", bs, bs) / jnp.where(upd, sbs, 1.0)[:, None, None]
-            + jnp.einsum("bi,bj->bij", r, r) / jnp.where(upd, sr, 1.0)[:, None, None]
-        )
-        return jnp.where(upd[:, None, None], new, bm)
-
     def initial_bfgs(g):
         sigma = jnp.maximum(jnp.linalg.norm(g, axis=1), jnp.finfo(dtype).tiny) / RADIUS_INIT
         return sigma[:, None, None] * eye
@@ -490,6 +587,7 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         return f, jnp.where(free & ok[:, None], g, 0.0), ok
 
     scales = jnp.asarray(STEP_SCALES, dtype)
+    subspace = not exact  # the BFGS model is positive definite (`_subspace_step`)
 
     # One pass of the loop evaluates the gradient at the point the previous pass proposed
     # (``zp``; the first pass: z0), completes that iteration (acceptance, model update), then
@@ -509,10 +607,13 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
             bm_new = jax.lax.cond(
                 first | (st["it"] % settings.hessian_every == 0),
                 lambda: model_hessian(z_new),
-                lambda: bfgs(bm, z_new - z, g_new - g, accept),
+                lambda: _bfgs_update(bm, z_new - z, g_new - g, accept),
             )
         else:
-            updated = bfgs(bm, z_new - z, g_new - g, accept)
+            if subspace:
+                updated, h_upd = _bfgs_update(bm, z_new - z, g_new - g, accept, st["hm"])
+            else:
+                updated = _bfgs_update(bm, z_new - z, g_new - g, accept)
             # A quasi-Newton model that no step length along its direction confirms is wrong:
             # restart it as a steepest-descent model scaled to the (shrunk) radius.
             reset = st["active"] & ~accept
@@ -520,15 +621,27 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
             sigma = jnp.linalg.norm(g, axis=1) / radius
             updated = jnp.where(reset[:, None, None], sigma[:, None, None] * eye, updated)
             bm_new = jnp.where(first, initial_bfgs(g_new), updated)
+            if subspace:
+                tiny = jnp.finfo(dtype).tiny
+                h_upd = jnp.where(
+                    reset[:, None, None], eye / jnp.maximum(sigma, tiny)[:, None, None], h_upd
+                )
+                sigma0 = jnp.maximum(jnp.linalg.norm(g_new, axis=1), tiny) / RADIUS_INIT
+                hm_new = jnp.where(first, eye / sigma0[:, None, None], h_upd)
+                st = dict(st, hm=hm_new)
         done = jnp.where(first, ~ok_p, st["done"])
         return dict(st, z=z_new, f=f_new, g=g_new, bm=bm_new, done=done, first=False)
 
-    def propose(st):
+    def propose(st, go=None):
         """The next trust-region step from ``z``: ``zp``, whether a step length passed, radius."""
         z, f, g, bm, radius = st["z"], st["f"], st["g"], st["bm"], st["radius"]
-        p, _, decrement = _trust_region_step(bm, g, radius)
-        conv_now = ~st["done"] & (decrement <= settings.tol * jnp.abs(f))
-        active = ~st["done"] & ~conv_now
+        if subspace:
+            p, _, decrement = _subspace_step(bm, st["hm"], g, radius)
+        else:
+            p, _, decrement = _trust_region_step(bm, g, radius)
+        live = ~st["done"] if go is None else ~st["done"] & go
+        conv_now = live & (decrement <= settings.tol * jnp.abs(f))
+        active = live & ~conv_now
         # Values along the step at a few lengths (cheap next to the Hessian): a step the model
         # overrates is shortened in the same iteration instead of costing one.
         gp = jnp.sum(g * p, axis=1)
@@ -569,16 +682,15 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
             conv=st["conv"] | conv_now,
         )
 
-    fixed = fixed_trip_loops()
-
     def body(st):
         st = finish(st)
         go_on = (st["it"] < settings.max_iters) & jnp.any(~st["done"])
-        if fixed:
-            st = _select(go_on, propose(st), st)
-        else:
-            st = jax.lax.cond(go_on, propose, lambda s: s, st)
+        st = jax.lax.cond(go_on, propose, lambda s: s, st)
         return dict(st, pending=go_on)
+
+    def one_pass(_, st):
+        st = finish(st)
+        return propose(st, st["it"] < settings.max_iters)
 
     state = dict(
         z=z0,
@@ -596,18 +708,17 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         first=jnp.asarray(True),
         pending=jnp.asarray(True),
     )
-    if fixed:  # max_iters proposals take at most max_iters + 1 passes; later ones change nothing
+    if subspace:
+        state["hm"] = jnp.zeros((b, n, n), dtype)
+    if fixed_trip_loops():
+        # max_iters proposals take max_iters + 1 passes. A problem that is done changes nothing
+        # in a pass (it proposes its own point, which is not accepted), nor does the last pass
+        # (it proposes nothing), so the passes need no test of their own.
         assert settings.max_iters is not None  # `OptimSettings.resolved`
-        passes = settings.max_iters + 1
-        st = jax.lax.fori_loop(0, passes, lambda _, s: _select(s["pending"], body(s), s), state)
+        st = jax.lax.fori_loop(0, settings.max_iters + 1, one_pass, state)
     else:
         st = jax.lax.while_loop(lambda s: s["pending"], body, state)
     return _Result(z=st["z"], f=st["f"], iterations=st["iters"], converged=st["conv"])
-
-
-def _select(pred, a, b):
-    """Pytree ``a`` where the scalar ``pred``, else ``b`` (both evaluated)."""
-    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
 
 
 def fixed_trip_loops() -> bool:
@@ -617,10 +728,10 @@ def fixed_trip_loops() -> bool:
     On a GPU, a ``while`` loop with a computed condition and a ``lax.cond`` each wait for their
     predicate on the host, once per iteration: in an H100 trace at 1,000 conditions, 82 gaps of
     ~85 us on average per generation, about 30 % of its time. A loop of known trip count runs
-    without them; passes after the batch is done are computed and discarded (``where``), so the
-    iterates are the same. The selects cost kernels of their own: generations got 6 % (300
-    conditions) to 12 % (1,000) faster, not 30 % (`docs/scaling.md`). On CPU there is nothing to
-    wait for, and stopping early saves the discarded passes.
+    without them; passes after a problem is done leave it as it is, so the iterates are the
+    same. (A first version kept finished passes out with ``where`` selects, whose kernels ate
+    most of the gain; they are not needed: `docs/scaling.md`.) On CPU there is nothing to wait
+    for, and stopping early saves the passes after the batch is done.
     """
     return jax.default_backend() != "cpu"
 

@@ -17,7 +17,10 @@ from evojax_motion.compile_interp import Boundary
 from evojax_motion.compile_optim import (
     DEFAULT_ITERS,
     OptimSettings,
+    _bfgs_update,
+    _eigh_2x2,
     _Result,
+    _subspace_step,
     cpu_fast_path,
     make_objective,
     make_optimisation_compiler,
@@ -61,6 +64,11 @@ TOL_FAST_PATH = 1e-3
 # Chunked vs whole batch: the same problems, rounding may differ with the batch size (float32).
 TOL_CHUNKS = 1e-5  # relative cost
 TOL_CHUNKS_Q = 1e-3  # rad
+TOL_LINALG = 1e-10  # float64: trust-region steps and BFGS updates vs their closed forms (numpy)
+# relative: length (12 Newton iterations on the secular equation: 1.6e-8 measured) and model
+# value of the subspace step vs a search over 200,000 angles on the circle (its own error is
+# ~ (2 pi / 200,000)^2, 1e-9)
+TOL_CIRCLE = 1e-7
 
 
 def synthetic_demos(robot, dyn, rng):
@@ -156,20 +164,33 @@ def test_gradient_in_null_space_matches_finite_differences(setup, x64):
         assert np.abs(fd).max() > 0  # a real check: the gradient is not trivially zero
 
 
-def test_matches_float64_slsqp(setup):
+@pytest.fixture(scope="module")
+def slsqp(setup):
+    """The float64 SLSQP reference of the well-posed conditions (default settings)."""
     s = setup
-    good = slice(0, GOOD)
-    take = jax.tree_util.tree_map(lambda a: a[good], (s["basis"], s["boundary"]))
+    take = jax.tree_util.tree_map(lambda a: a[:GOOD], (s["basis"], s["boundary"]))
     ref = solve_reference(s["robot"], s["grid"], *take, OptimSettings(), lower=s["lower"],
                           upper=s["upper"])  # fmt: skip
     # SLSQP stops either on ftol or when its line search cannot improve further (converged to
     # float64 precision); it must not run out of iterations.
     assert (ref.iterations < SLSQP_MAXITER).all()
-    out = s["out"]
-    ours = torque_costs_f64(s["robot"], s["grid"], out.q[good], take[1].duration)
+    return ref
+
+
+def gap_to_slsqp(setup, ref, out) -> np.ndarray:
+    """Relative float64 eq. 5 cost gap of ``out``'s well-posed conditions to ``ref``."""
+    s = setup
+    ours = torque_costs_f64(s["robot"], s["grid"], out.q[:GOOD], s["boundary"].duration[:GOOD])
     gap = (ours - ref.cost) / ref.cost
     print("gap to SLSQP:", np.round(gap * 100, 4), "%")
-    assert gap.max() <= TOL_GAP
+    return gap
+
+
+def test_matches_float64_slsqp(setup, slsqp):
+    s, ref = setup, slsqp
+    out = s["out"]
+    good = slice(0, GOOD)
+    assert gap_to_slsqp(s, ref, out).max() <= TOL_GAP
     assert np.asarray(out.within_limits[good]).all()
     # The limits bind for some condition, else this test would not check the limit handling.
     assert ref.max_violation.max() < 1e-6
@@ -253,13 +274,117 @@ def test_accelerator_loop_in_chunks_gives_the_whole_batch_results(setup, monkeyp
         s["basis"], s["boundary"]
     )
     assert calls  # traced the accelerators' loop
-    ref = s["out"]
+    assert_same_results(out, s["out"])
+
+
+def assert_same_results(out, ref) -> None:
+    """Two runs of the same problems: the same flags and iterations, costs and trajectories equal
+    up to the rounding of a differently batched program (`TOL_CHUNKS`, `TOL_CHUNKS_Q`)."""
     for name in ("finite", "within_limits", "converged", "iterations"):
         np.testing.assert_array_equal(
             np.asarray(getattr(out, name)), np.asarray(getattr(ref, name))
         )
     np.testing.assert_allclose(np.asarray(out.cost), np.asarray(ref.cost), rtol=TOL_CHUNKS)
     np.testing.assert_allclose(np.asarray(out.q), np.asarray(ref.q), atol=TOL_CHUNKS_Q)
+
+
+def test_bfgs_matches_float64_slsqp_in_both_loops(setup, slsqp, monkeypatch):
+    """The BFGS method (two-dimensional subspace steps) on the well-posed conditions: within
+    `TOL_GAP` of float64 SLSQP with the CPU's loop, and the accelerators' loop (fixed trip
+    count, in chunks of 3) finds the same on all 8 conditions."""
+    s = setup
+    args = (s["dyn"], s["grid"], s["lower"], s["upper"])
+    cpu = make_optimisation_compiler(*args, OptimSettings(method="bfgs"))(s["basis"], s["boundary"])
+    assert gap_to_slsqp(s, slsqp, cpu).max() <= TOL_GAP
+    assert np.asarray(cpu.within_limits[:GOOD]).all()
+    monkeypatch.setattr(optim_module, "fixed_trip_loops", lambda: True)
+    fixed = make_optimisation_compiler(*args, OptimSettings(method="bfgs", max_batch=3))(
+        s["basis"], s["boundary"]
+    )
+    assert_same_results(fixed, cpu)
+
+
+def _spd_batch(rng, b, n):
+    a = rng.standard_normal((b, n, n))
+    return a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(n)
+
+
+def test_subspace_step_minimises_the_model_on_its_plane(x64):
+    """`_subspace_step` (the BFGS method's step), float64 against numpy: the Newton step where it
+    fits; else the minimum of the model on the circle of the radius in the plane of ``g`` and
+    the Newton step (dense search over the angle), for radii below the Cauchy point's length,
+    between it and the Newton step's, and for a model with no plane (``B = 2 I``)."""
+    rng = np.random.default_rng(1)
+    bm, g = _spd_batch(rng, 4, 6), rng.standard_normal((4, 6))
+    bm[3] = 2.0 * np.eye(6)
+    newton = -np.linalg.solve(bm, g[..., None])[..., 0]
+    gbg = np.einsum("bi,bij,bj->b", g, bm, g)
+    cauchy = -(np.sum(g * g, axis=1) / gbg)[:, None] * g
+    ln, lc = np.linalg.norm(newton, axis=1), np.linalg.norm(cauchy, axis=1)
+    assert (lc[:3] < ln[:3]).all()  # else the middle case below is not one
+    radius = np.array([1.5 * ln[0], 0.5 * lc[1], 0.5 * (lc[2] + ln[2]), 0.5 * ln[3]])
+    p, pred, decrement = (
+        np.asarray(a) for a in _subspace_step(*map(jnp.asarray, (bm, np.linalg.inv(bm), g, radius)))
+    )
+
+    def model(x, i):
+        return g[i] @ x + 0.5 * x @ bm[i] @ x
+
+    np.testing.assert_allclose(p[0], newton[0], rtol=TOL_LINALG)
+    np.testing.assert_allclose(p[3], radius[3] * newton[3] / ln[3], rtol=TOL_LINALG)
+    theta = np.linspace(0.0, 2 * np.pi, 200_001)
+    for i in (1, 2):
+        plane = np.linalg.qr(np.stack([g[i], newton[i]], axis=1))[0]  # (n, 2) orthonormal
+        np.testing.assert_allclose(plane @ (plane.T @ p[i]), p[i], atol=TOL_LINALG)
+        np.testing.assert_allclose(np.linalg.norm(p[i]), radius[i], rtol=TOL_CIRCLE)
+        circle = radius[i] * (plane @ np.stack([np.cos(theta), np.sin(theta)]))  # (n, S)
+        values = g[i] @ circle + 0.5 * np.einsum("ns,nm,ms->s", circle, bm[i], circle)
+        np.testing.assert_allclose(model(p[i], i), values.min(), rtol=TOL_CIRCLE)
+    np.testing.assert_allclose(pred, [-model(p[i], i) for i in range(4)], rtol=TOL_LINALG)
+    np.testing.assert_allclose(decrement, -0.5 * np.sum(g * newton, axis=1), rtol=TOL_LINALG)
+
+
+def test_closed_form_2x2_eigh_matches_numpy(x64):
+    """`_eigh_2x2` against ``np.linalg.eigh``: random symmetric matrices, a multiple of the
+    identity (any basis), diagonal ones in either order, and an ill-conditioned positive
+    definite one, whose small eigenvalue must keep its relative accuracy (``mean - radius``
+    errs by ~3e-5 there)."""
+    rng = np.random.default_rng(3)
+    a, b, c = rng.standard_normal((3, 50))
+    a[:3], b[:3], c[:3] = [2.0, 1.0, 3.0], [0.0, 0.0, 0.0], [2.0, 3.0, 1.0]
+    a[3], b[3], c[3] = 1e12, 1e5, 1.0  # eigenvalues ~1e12 and ~0.99
+    m = np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
+    e, v = (np.asarray(x) for x in _eigh_2x2(*map(jnp.asarray, (a, b, c))))
+    ref = np.linalg.eigvalsh(m)
+    np.testing.assert_allclose(e[:3], ref[:3], rtol=TOL_LINALG)
+    np.testing.assert_allclose(e[3], ref[3], rtol=1e-8)
+    np.testing.assert_allclose(e, ref, atol=TOL_LINALG * np.abs(ref).max())
+    np.testing.assert_allclose(m @ v, v * e[:, None, :], atol=TOL_LINALG)
+    np.testing.assert_allclose(np.swapaxes(v, 1, 2) @ v, np.broadcast_to(np.eye(2), m.shape),
+                               atol=TOL_LINALG)  # fmt: skip
+
+
+def test_bfgs_update_keeps_the_inverse(x64):
+    """`_bfgs_update` with the inverse: where accepted, the model meets the secant condition of
+    its damped pair (``B s = y`` where Powell's damping leaves ``y`` as it is) and the updated
+    inverse is its inverse; elsewhere both stay. One pair has ``s.y < 0``, so is damped."""
+    rng = np.random.default_rng(2)
+    bm, s = _spd_batch(rng, 4, 5), rng.standard_normal((4, 5))
+    y = np.einsum("bij,bj->bi", bm, s) + 0.1 * rng.standard_normal((4, 5))
+    y[1] = -y[1]
+    assert s[1] @ y[1] < 0
+    accept = np.array([True, True, False, True])
+    new_b, new_h = (
+        np.asarray(a)
+        for a in _bfgs_update(*map(jnp.asarray, (bm, s, y, accept, np.linalg.inv(bm))))
+    )
+    np.testing.assert_allclose(new_h @ new_b, np.broadcast_to(np.eye(5), (4, 5, 5)),
+                               atol=TOL_LINALG * 1e3)  # fmt: skip
+    for i in (0, 3):
+        np.testing.assert_allclose(new_b[i] @ s[i], y[i], rtol=TOL_LINALG * 1e3)
+    np.testing.assert_allclose(new_b[2], bm[2], rtol=0)
+    assert np.linalg.eigvalsh(new_b[1]).min() > 0  # damped: still positive definite
+    assert not np.allclose(new_b[1], bm[1])
 
 
 @pytest.mark.parametrize("stride", [1, 3, 5])
