@@ -509,7 +509,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     """
     from evojax_motion.compile_cache import compile_traced
     from evojax_motion.database import count_human
-    from evojax_motion.parallel import resolve_devices, sharded_generation_step
+    from evojax_motion.parallel import sharded_generation_step
     from evojax_motion.timegrid import make_time_grid
     from evojax_motion.workflow import cache_parts
 
@@ -520,7 +520,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
         devices=cfg.parallel.devices,
     )  # fmt: skip
     args = (db, conditions, np.asarray(1, np.int32))  # the generation index is traced
-    if len(resolve_devices(cfg.parallel.devices)) > 1:
+    if not stays_on_device(cfg):  # sharded over several devices
         return step_fn.lower(*args).compile()
     parts = {"program": "generation_step", "n_human": n_human, **cache_parts(cfg, robot)}
     return compile_traced(step_fn, args, parts, options)
