@@ -1,4 +1,4 @@
-"""Shared test settings: CPU, deterministic, x64 on request."""
+"""Shared test settings: CPU, deterministic, quicker XLA compiles, x64 on request."""
 
 import os
 import shutil
@@ -18,6 +18,17 @@ if "EVOJAX_TEST_XLA_CACHE" in os.environ:
     os.environ["EVOJAX_MOTION_JAX_CACHE"] = os.environ["EVOJAX_TEST_XLA_CACHE"]
     # every program, not only those that took >= 1 s to compile (as the command line does)
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+# The tests' programs compile with XLA's CPU fusion emitters off, as those of
+# `dynamics.unfused_cpu_program` always do: every test passes with its tolerances unchanged, and
+# pytest takes ~60 % of the time (most of the suite is XLA compilation; 2 CPU cores, 2026-11-25:
+# 230-234 s vs 365-394 s). For the test session only: its processes and those they start inherit
+# XLA_FLAGS; a setting of the flag in the user's XLA_FLAGS wins. Spelt "=0", not "=false": the
+# RNEA layout that `dynamics_rnea.default_form` picks is then still the users' default one
+# (vector on CPU), since it switches to "scalar" on "=false" only; checked below.
+_FLAG = "--xla_cpu_use_fusion_emitters"
+_SET_FLAG = _FLAG not in os.environ.get("XLA_FLAGS", "")
+if _SET_FLAG:
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FLAG}=0".strip()
 
 import jax  # noqa: E402  (after the environment above)
 import pytest  # noqa: E402
@@ -31,6 +42,14 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
 if "EVOJAX_TEST_XLA_CACHE" in os.environ:  # in case a plugin imported jax before this file
     jax.config.update("jax_compilation_cache_dir", os.environ["EVOJAX_TEST_XLA_CACHE"])
+
+from evojax_motion.dynamics_rnea import default_form  # noqa: E402
+
+if _SET_FLAG and jax.default_backend() == "cpu" and default_form() != "vector":
+    raise RuntimeError(
+        f"tests/conftest.py: with {_FLAG}=0 the default RNEA layout on CPU is no longer the "
+        "users' default ('vector'); the tests would run another layout than users get"
+    )
 
 
 @pytest.fixture
@@ -52,11 +71,12 @@ def pytest_unconfigure(config):
 # the same programs: those form one unit (`SHARED_GROUPS`, `pytest_xdist_make_scheduler`), so
 # they run one after another on one worker and the later ones find the first one's compiles in
 # the session's XLA cache (side by side on two workers, both would compile them). The units are
-# handed out heaviest first (`GROUP_SECONDS`: seconds in a `make test` run on 2 CPU cores,
-# 2026-11-25; `pytest_collection_modifyitems` orders the tests so), so that no long unit starts
-# last while the other worker has nothing left to do. (Not `--dist loadgroup` with `xdist_group`
-# marks: pytest-xdist 3.8 puts the group into `item._nodeid`, which pytest 9 no longer reads, so
-# every test would be a unit of its own and module fixtures would be built on both workers.)
+# handed out heaviest first (`GROUP_SECONDS`: seconds in `make test` runs on 2 CPU cores with the
+# compile flag above, mean of 3, 2026-11-25; `pytest_collection_modifyitems` orders the tests
+# so), so that no long unit starts last while the other worker has nothing left to do. (Not
+# `--dist loadgroup` with `xdist_group` marks: pytest-xdist 3.8 puts the group into
+# `item._nodeid`, which pytest 9 no longer reads, so every test would be a unit of its own and
+# module fixtures would be built on both workers.)
 SHARED_GROUPS = {
     # configs/tiny.yaml: test_train trains it first (setup programs, generation step, synthesised
     # demonstrations); the report of test_report's synthetic run (the tiny run's settings and
@@ -68,10 +88,10 @@ SHARED_GROUPS = {
     "online": ("test_online", "test_catching", "test_export"),
 }  # fmt: skip
 GROUP_SECONDS = {
-    "tiny": 300, "test_dynamics": 265, "test_compile_optim": 245, "online": 115,
-    "test_parallel": 89, "test_evolution": 78, "test_examples": 70, "test_import": 66,
-    "test_basis": 50, "test_compile_interp": 30, "test_ik": 21, "test_retarget": 17,
-    "test_bad_input": 15,
+    "tiny": 112, "test_compile_optim": 77, "test_dynamics": 66, "online": 33,
+    "test_examples": 32, "test_parallel": 31, "test_evolution": 26, "test_basis": 19,
+    "test_import": 17, "test_compile_interp": 7, "test_ik": 6, "test_bad_input": 5,
+    "test_retarget": 5,
 }  # fmt: skip
 _GROUP_OF = {m: g for g, modules in SHARED_GROUPS.items() for m in modules}
 
