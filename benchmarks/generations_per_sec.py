@@ -11,7 +11,8 @@ What one run measures (all figures from the same process, so ratios are meaningf
   objective, start; ``slsqp_reference.py``): median / p95 / max;
 - ``baseline``: what a user would write: SLSQP per condition (float64), torques from C MuJoCo
   ``mj_inverse`` with finite-difference gradients, and with analytic (float64 JAX) gradients;
-  sequential and with a process pool over all cores; timed on ``--baseline-conditions``
+  sequential and with a process pool over all cores, each solver compiled and warmed up before
+  its clock starts (as ours is timed after compilation); timed on ``--baseline-conditions``
   conditions and scaled to the full condition count -> generations/s and ours/baseline ratios;
 - ``first_generation``: ``evojax-motion train`` of one generation in a fresh process, from launch
   to the end of generation 1 (imports, demonstrations, conditions, compile, the generation), with
@@ -20,13 +21,15 @@ What one run measures (all figures from the same process, so ratios are meaningf
 Usage (CPU, paper scale):
     python benchmarks/generations_per_sec.py --config configs/catch_ball.yaml
 GPU sweep:
-    python benchmarks/generations_per_sec.py --sweep-conditions 1000,10000,100000 --no-baseline
+    python benchmarks/generations_per_sec.py --sweep-conditions 1000,10000,100000 \
+        --baseline-conditions 0 --gap-conditions 0
 Writes ``benchmarks/results/generations_per_sec_<tag>.json`` and prints a markdown table.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import multiprocessing as mp
@@ -162,19 +165,28 @@ def optimality_gap(cfg, robot, dyn, db, conds, n: int) -> dict:
     }
 
 
-def _baseline_worker(payload):
-    robot, grid, basis, boundary, settings, gradient = payload
-    from slsqp_reference import solve_reference
+_SOLVER = None  # a pool worker's `slsqp_reference.ReferenceSolver`, made by `_warm_worker`
 
+
+def _solve_timed(solver, basis, boundary) -> float:
     t0 = time.perf_counter()
-    solve_reference(robot, grid, basis, boundary, settings, gradient=gradient)
+    solver(basis, boundary)
     return time.perf_counter() - t0
 
 
-def _warm_worker(payload, ready):
-    _baseline_worker(payload)
+def _warm_worker(make, warm, ready):
+    """Pool initializer: this worker's solver, warmed up on one condition (its compiles)."""
+    global _SOLVER
+    from slsqp_reference import ReferenceSolver
+
+    _SOLVER = ReferenceSolver(*make)
+    _solve_timed(_SOLVER, *warm)
     with ready.get_lock():
         ready.value += 1
+
+
+def _baseline_worker(part) -> float:
+    return _solve_timed(_SOLVER, *part)
 
 
 def _slices(tree, parts: int):
@@ -184,30 +196,56 @@ def _slices(tree, parts: int):
             for lo, hi in itertools.pairwise(bounds)]  # fmt: skip
 
 
+# Math libraries single-threaded in the pool's workers: with their default (a thread per core),
+# two workers' OpenBLAS threads contend for 2 cores and the pool ran ~2x slower than one process
+# (2 CPU cores, 32 conditions, 2026-11-25: analytic SLSQP 0.068 s per condition pooled against
+# 0.034 sequential; single-threaded 0.0122 against 0.0241). A user's pool is set up so too.
+WORKER_THREADS_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+@contextlib.contextmanager
+def _worker_environment():
+    """``WORKER_THREADS_ENV`` (where not set already) for the processes started inside."""
+    added = {k: v for k, v in WORKER_THREADS_ENV.items() if k not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for k in added:
+            del os.environ[k]
+
+
 def baseline(cfg, robot, dyn, db, conds, n: int, workers: int) -> dict:
     """SLSQP per condition (C MuJoCo FD gradients; analytic JAX gradients), sequential and pooled.
 
-    Each mode is warmed up on one condition first (JAX compile, imports), as ours is timed after
-    compilation. Seconds are for ``n`` conditions; ``per_condition_s`` scales to any count.
+    Each mode times solves only, as ours is timed after compilation: the sequential solver and
+    every pool worker's own are warmed up on one condition first (imports, JAX compiles; the
+    solver compiles nothing after that, `slsqp_reference.ReferenceSolver`); the workers' math
+    libraries run single-threaded (``WORKER_THREADS_ENV``). Seconds are for
+    ``n`` conditions; ``per_condition_s`` scales to any count.
     """
+    from slsqp_reference import ReferenceSolver
+
     grid, basis, boundary = generation1_problems(cfg, robot, dyn, db, conds, n)
+    warm = jax.tree_util.tree_map(lambda a: a[:1], (basis, boundary))
     out = {}
     ctx = mp.get_context("spawn")
     for gradient in ("mujoco-fd", "jax"):
-        warm = (robot, grid, *jax.tree_util.tree_map(lambda a: a[:1], (basis, boundary)),
-                cfg.compiler, gradient)  # fmt: skip
-        _baseline_worker(warm)
-        seq = _baseline_worker((robot, grid, basis, boundary, cfg.compiler, gradient))
+        make = (robot, grid, cfg.compiler, gradient)
+        solver = ReferenceSolver(*make)
+        _solve_timed(solver, *warm)
+        seq = _solve_timed(solver, basis, boundary)
         ready = ctx.Value("i", 0)
         # Every worker warms up in its initializer; the clock starts once all have (a warm-up
         # by `map` may hand every warm-up task to one worker and time the other one's start).
-        with ctx.Pool(workers, initializer=_warm_worker, initargs=(warm, ready)) as pool:
+        with (
+            _worker_environment(),
+            ctx.Pool(workers, initializer=_warm_worker, initargs=(make, warm, ready)) as pool,
+        ):
             while ready.value < workers:
                 time.sleep(0.05)
             t0 = time.perf_counter()
-            parts = [(robot, grid, b, bc, cfg.compiler, gradient)
-                     for b, bc in _slices((basis, boundary), workers)]  # fmt: skip
-            pool.map(_baseline_worker, parts, chunksize=1)
+            pool.map(_baseline_worker, _slices((basis, boundary), workers), chunksize=1)
             pooled = time.perf_counter() - t0
         out[gradient] = {
             "conditions_timed": n,
@@ -335,7 +373,7 @@ def main(argv=None) -> None:
     p.add_argument("--sweep-samples", default="", help="e.g. 50,200: extra runs at other T")
     p.add_argument("--generations", type=int, default=4, help="timed generations per point")
     p.add_argument("--gap-conditions", type=int, default=100, help="0 = skip the gap")
-    p.add_argument("--baseline-conditions", type=int, default=8, help="0 = skip the baseline")
+    p.add_argument("--baseline-conditions", type=int, default=32, help="0 = skip the baseline")
     p.add_argument("--workers", type=int, default=os.cpu_count())
     p.add_argument("--no-first-generation", action="store_true")
     p.add_argument("--warm-runs", type=int, default=3, help="first generation, warm cache")

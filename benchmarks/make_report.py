@@ -140,6 +140,47 @@ def optimality_section() -> list[str]:
     return out or [*out, "Not measured yet.", ""]
 
 
+def trace_section() -> list[str]:
+    out = ["## Where a generation's device time goes (`benchmarks/trace_generation.py`)", ""]
+    found = _load("trace_generation_*.json")
+    if found:
+        out += [
+            "Timed without the profiler; then a `jax.profiler` trace of the busiest device "
+            "stream. Busy: the time its kernels run; span: first kernel's start to last one's "
+            "end (per generation, profiled).",
+            "",
+            "| file | conditions | us / condition | ms / generation | kernels / generation "
+            "| busy ms | span ms | busy / span | largest kernels (mean us x per generation) |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---|",
+        ]
+    for path, d in found:
+        t = d.get("trace")
+        cells = ["-"] * 5
+        if t:
+            top = "; ".join(
+                f"`{k['name'][:40]}` {k['mean_us']:.1f} x {k['per_generation']:g}"
+                for k in t["top_kernels"][:3]
+            )
+            cells = [
+                f"{t['kernels_per_generation']:.0f}",
+                f"{t['busy_us_per_generation'] / 1e3:.2f}",
+                f"{t['span_us_per_generation'] / 1e3:.2f}",
+                f"{t['busy_fraction']:.2f}",
+                top,
+            ]
+        out.append(
+            f"| {path.name} | {d['conditions']} | {d['us_per_condition']:.2f} "
+            f"| {1e3 * d['seconds_per_generation']:.2f} | " + " | ".join(cells) + " |"
+        )
+    for path, d in found:
+        m = d["machine"]
+        out.append(
+            f"\n{path.name}: {_machine(m)}. Command: `{m.get('command', '?')}`. "
+            f"XLA_FLAGS: {('`' + m['xla_flags'] + '`') if m.get('xla_flags') else 'none'}"
+        )
+    return [*out, ""] if found else [*out, "Not measured yet.", ""]
+
+
 def main() -> None:
     lines = [
         "# Benchmarks",
@@ -181,6 +222,7 @@ def main() -> None:
         "Where a generation's time goes (`benchmarks/profile_generation.py`)",
         ["conditions", "samples", "overrides", "stages", "iterations_median", "iterations_max"],
     )
+    lines += trace_section()
     lines += json_summaries(
         "profile_online_*.json",
         "Where an online batch's time goes (`benchmarks/profile_online.py`)",

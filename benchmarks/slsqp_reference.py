@@ -90,16 +90,28 @@ def _dynamics_f64(robot: Robot):
     return make_dynamics(robot, "rnea", jnp.float64, form="vector")  # the CPU layout
 
 
+class TorqueCostF64:
+    """``cost(q (C, T, J), duration (C,)) -> (C,)``: float64 eq. 5 cost (JAX RNEA, x64), its
+    program compiled once per batch size and kept."""
+
+    def __init__(self, robot: Robot, grid: TimeGrid):
+        with jax.enable_x64(True), _on_cpu():
+            dyn = _dynamics_f64(robot)
+            g64 = grid._replace(**{k: np.asarray(v, np.float64) for k, v in grid._asdict().items()})
+            self.fn = jax.jit(jax.vmap(lambda qq, dd: torque_cost(dyn, g64, qq, dd)))
+
+    def __call__(self, q, duration) -> np.ndarray:
+        with jax.enable_x64(True), _on_cpu():
+            out = self.fn(
+                jnp.asarray(np.asarray(q, np.float64)),
+                jnp.asarray(np.asarray(duration, np.float64)),
+            )
+            return np.asarray(out)
+
+
 def torque_costs_f64(robot: Robot, grid: TimeGrid, q, duration) -> np.ndarray:
     """Float64 eq. 5 cost of each ``q (C, T, J)`` with ``duration (C,)`` (JAX RNEA, x64)."""
-    with jax.enable_x64(True), _on_cpu():
-        dyn = _dynamics_f64(robot)
-        g64 = grid._replace(**{k: np.asarray(v, np.float64) for k, v in grid._asdict().items()})
-        fn = jax.jit(jax.vmap(lambda qq, dd: torque_cost(dyn, g64, qq, dd)))
-        out = fn(
-            jnp.asarray(np.asarray(q, np.float64)), jnp.asarray(np.asarray(duration, np.float64))
-        )
-        return np.asarray(out)
+    return TorqueCostF64(robot, grid)(q, duration)
 
 
 def solve_reference(
@@ -108,128 +120,140 @@ def solve_reference(
     basis: Basis,
     boundary: Boundary,
     settings: OptimSettings | None = None,
-    gradient: str = "jax",
-    maxiter: int = SLSQP_MAXITER,
-    ftol: float = SLSQP_FTOL,
-    lower=None,
-    upper=None,
+    **options,
 ) -> ReferenceResult:
     """SLSQP on every condition of the batch (see the module docstring). Float64 throughout.
 
-    ``lower``, ``upper``: joint limits ``(J,)`` [rad], default the robot's; the constraints use
-    them shrunk by ``settings.limit_margin``.
+    ``options``: ``gradient``, ``maxiter``, ``ftol``, ``lower``, ``upper`` of `ReferenceSolver`.
+    One call, one solver (its programs are compiled in this call); to time solves without
+    compiling, keep a `ReferenceSolver` and call it again.
     """
-    if gradient not in GRADIENTS:
-        raise ValueError(f"gradient: expected one of {GRADIENTS}, got {gradient!r}")
-    settings = OptimSettings() if settings is None else settings
-    # The reduced problem is built exactly as the compiler builds it (same dtype and device, so
-    # the same binding BC directions, start and null space), then solved in float64 on the CPU.
-    build = jax.jit(
-        lambda b, bc: reduced_problems(
-            b, bc, grid, settings.n_components, settings.bc_leak, settings.max_free_per_joint
-        )
-    )
-    problems, _, _ = build(basis, boundary)
-    problems = jax.tree_util.tree_map(
-        lambda a: np.asarray(a, np.float64) if np.asarray(a).dtype.kind == "f" else np.asarray(a),
-        problems,
-    )
-    with _on_cpu():
-        return _solve_on_cpu(robot, grid, problems, settings, gradient, maxiter, ftol, lower, upper)
+    return ReferenceSolver(robot, grid, settings, **options)(basis, boundary)
 
 
-def _solve_on_cpu(
-    robot, grid, problems, settings, gradient, maxiter, ftol, lower, upper
-) -> ReferenceResult:
-    with jax.enable_x64(True):
+class ReferenceSolver:
+    """``solver(basis, boundary) -> ReferenceResult``: `solve_reference` with its compiled
+    programs kept between calls, as a user's own SLSQP loop would keep them.
+
+    Every program works on one condition at a time (the reduced problem's build, the float64
+    value and gradient, the returned cost), so after one call of any batch size no later call
+    compiles anything: a baseline timed with it times the solves, not XLA. ``gradient``: of
+    ``GRADIENTS``; ``lower``, ``upper``: joint limits ``(J,)`` [rad], default the robot's; the
+    constraints use them shrunk by ``settings.limit_margin``.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        grid: TimeGrid,
+        settings: OptimSettings | None = None,
+        gradient: str = "jax",
+        maxiter: int = SLSQP_MAXITER,
+        ftol: float = SLSQP_FTOL,
+        lower=None,
+        upper=None,
+    ):
+        if gradient not in GRADIENTS:
+            raise ValueError(f"gradient: expected one of {GRADIENTS}, got {gradient!r}")
+        self.robot, self.grid, self.gradient = robot, grid, gradient
+        self.settings = OptimSettings() if settings is None else settings
+        self.maxiter, self.ftol = maxiter, ftol
+        st = self.settings
         lower = robot.lower if lower is None else lower
         upper = robot.upper if upper is None else upper
-        lo = np.asarray(lower, np.float64) + settings.limit_margin
-        hi = np.asarray(upper, np.float64) - settings.limit_margin
-        if gradient == "jax":
+        self.lo = np.asarray(lower, np.float64) + st.limit_margin
+        self.hi = np.asarray(upper, np.float64) - st.limit_margin
+        # The reduced problem is built exactly as the compiler builds it (same dtype and device,
+        # so the same binding BC directions, start and null space), then solved in float64 on
+        # the CPU.
+        self.build = jax.jit(
+            lambda b, bc: reduced_problems(
+                b, bc, grid, st.n_components, st.bc_leak, st.max_free_per_joint
+            )[0]
+        )
+        with jax.enable_x64(True), _on_cpu():
             dyn = _dynamics_f64(robot)
-            objective = make_objective(dyn, lo, hi, 0.0)
-            value_and_grad = jax.jit(jax.value_and_grad(lambda z, prob: objective(z, prob)[1]))
-        else:
-            mj_cost = MujocoCost(robot, grid)
+            objective = make_objective(dyn, self.lo, self.hi, 0.0)
+            self.value_and_grad = jax.jit(jax.value_and_grad(lambda z, prob: objective(z, prob)[1]))
+        self.cost = TorqueCostF64(robot, grid)
+        self.mj_cost = MujocoCost(robot, grid) if gradient == "mujoco-fd" else None
 
-        c, t, j = problems.q_ls.shape
-        out_q = np.empty((c, t, j))
-        cost = np.empty(c)
-        success = np.zeros(c, bool)
-        iters = np.zeros(c, np.int64)
-        wall = np.zeros(c)
-        viol = np.zeros(c)
-        messages = []
-        for i in range(c):
-            prob = jax.tree_util.tree_map(lambda a, i=i: a[i], problems)
-            mask = prob.mask
-            free = np.flatnonzero(mask.reshape(-1))
-            # q(z) = q_ls + M z_free: the (T*J, n_free) matrix of the free directions.
-            dirs = prob.dirs.reshape(j * prob.dirs.shape[1], t)[free]  # (n_free, T)
-            joint_of = np.repeat(np.arange(j), prob.dirs.shape[1])[free]
-            lin = np.zeros((t, j, free.size))
-            lin[:, joint_of, np.arange(free.size)] = dirs.T
-            inner = slice(1, t - 1)
-            a_mat = lin[inner].reshape(-1, free.size)
-            q_in = prob.q_ls[inner].reshape(-1)
-            lo_in = np.broadcast_to(lo, (t - 2, j)).reshape(-1)
-            hi_in = np.broadcast_to(hi, (t - 2, j)).reshape(-1)
-            constraints = [
-                {
-                    "type": "ineq",
-                    "fun": lambda x, a=a_mat, q0=q_in, h=hi_in: h - (q0 + a @ x),
-                    "jac": lambda x, a=a_mat: -a,
-                },
-                {
-                    "type": "ineq",
-                    "fun": lambda x, a=a_mat, q0=q_in, lw=lo_in: (q0 + a @ x) - lw,
-                    "jac": lambda x, a=a_mat: a,
-                },
-            ]
-            duration = float(prob.duration)
+    def __call__(self, basis: Basis, boundary: Boundary) -> ReferenceResult:
+        c = jax.tree_util.tree_leaves(boundary)[0].shape[0]
+        results = [self._solve_one(basis, boundary, i) for i in range(c)]
+        q, cost, success, iters, wall, viol, messages = zip(*results, strict=True)
+        return ReferenceResult(
+            np.stack(q), np.array(cost), np.array(success), np.array(iters, np.int64),
+            np.array(wall), np.array(viol), list(messages),
+        )  # fmt: skip
 
-            def full(x, mask=mask):
+    def _solve_one(self, basis: Basis, boundary: Boundary, i: int):
+        one = jax.tree_util.tree_map(lambda a: a[i : i + 1], (basis, boundary))
+        prob = jax.tree_util.tree_map(
+            lambda a: np.asarray(a[0], np.float64) if a.dtype.kind == "f" else np.asarray(a[0]),
+            jax.tree_util.tree_map(np.asarray, self.build(*one)),
+        )
+        with jax.enable_x64(True), _on_cpu():
+            return self._slsqp(prob)
+
+    def _slsqp(self, prob):
+        lo, hi = self.lo, self.hi
+        t, j = prob.q_ls.shape
+        mask = prob.mask
+        free = np.flatnonzero(mask.reshape(-1))
+        # q(z) = q_ls + M z_free: the (T*J, n_free) matrix of the free directions.
+        dirs = prob.dirs.reshape(j * prob.dirs.shape[1], t)[free]  # (n_free, T)
+        joint_of = np.repeat(np.arange(j), prob.dirs.shape[1])[free]
+        lin = np.zeros((t, j, free.size))
+        lin[:, joint_of, np.arange(free.size)] = dirs.T
+        inner = slice(1, t - 1)
+        a_mat = lin[inner].reshape(-1, free.size)
+        q_in = prob.q_ls[inner].reshape(-1)
+        lo_in = np.broadcast_to(lo, (t - 2, j)).reshape(-1)
+        hi_in = np.broadcast_to(hi, (t - 2, j)).reshape(-1)
+        constraints = [
+            {"type": "ineq", "fun": lambda x: hi_in - (q_in + a_mat @ x), "jac": lambda x: -a_mat},
+            {"type": "ineq", "fun": lambda x: (q_in + a_mat @ x) - lo_in, "jac": lambda x: a_mat},
+        ]
+        duration = float(prob.duration)
+
+        def qz(x):
+            return prob.q_ls + lin @ x
+
+        if self.gradient == "jax":
+
+            def full(x):
                 z = np.zeros(mask.size)
                 z[mask.reshape(-1)] = x
                 return z.reshape(mask.shape)
 
-            if gradient == "jax":
-                f0 = float(value_and_grad(jnp.zeros(mask.shape), prob)[0])
-                scale = 1.0 / max(abs(f0), 1e-12)
+            f0 = float(self.value_and_grad(jnp.zeros(mask.shape), prob)[0])
+            scale = 1.0 / max(abs(f0), 1e-12)
 
-                def fun(x, prob=prob, scale=scale, full=full, free=free):
-                    f, g = value_and_grad(jnp.asarray(full(x)), prob)
-                    return float(f) * scale, np.asarray(g).reshape(-1)[free] * scale
+            def fun(x):
+                f, g = self.value_and_grad(jnp.asarray(full(x)), prob)
+                return float(f) * scale, np.asarray(g).reshape(-1)[free] * scale
 
-                jac = True
-            else:
+            jac = True
+        else:
+            f0 = self.mj_cost(qz(np.zeros(free.size)), duration)
+            scale = 1.0 / max(abs(f0), 1e-12)
 
-                def qz(x, prob=prob, lin=lin):
-                    return prob.q_ls + lin @ x
+            def fun(x):
+                return self.mj_cost(qz(x), duration) * scale
 
-                f0 = mj_cost(qz(np.zeros(free.size)), duration)
-                scale = 1.0 / max(abs(f0), 1e-12)
-
-                def fun(x, qz=qz, scale=scale, duration=duration):
-                    return mj_cost(qz(x), duration) * scale
-
-                jac = None
-            start = time.perf_counter()
-            res = minimize(
-                fun,
-                np.zeros(free.size),
-                jac=jac,
-                method="SLSQP",
-                constraints=constraints,
-                options={"maxiter": maxiter, "ftol": ftol},
-            )
-            wall[i] = time.perf_counter() - start
-            q_i = prob.q_ls + lin @ res.x
-            out_q[i] = q_i
-            success[i] = bool(res.success)
-            iters[i] = int(res.nit)
-            viol[i] = max(0.0, float(np.max(q_i[inner] - hi)), float(np.max(lo - q_i[inner])))
-            messages.append(str(res.message))
-        cost = torque_costs_f64(robot, grid, out_q, problems.duration)
-    return ReferenceResult(out_q, cost, success, iters, wall, viol, messages)
+            jac = None
+        start = time.perf_counter()
+        res = minimize(
+            fun,
+            np.zeros(free.size),
+            jac=jac,
+            method="SLSQP",
+            constraints=constraints,
+            options={"maxiter": self.maxiter, "ftol": self.ftol},
+        )
+        wall = time.perf_counter() - start
+        q = qz(res.x)
+        viol = max(0.0, float(np.max(q[inner] - hi)), float(np.max(lo - q[inner])))
+        cost = float(self.cost(q[None], np.asarray([duration]))[0])
+        return q, cost, bool(res.success), int(res.nit), wall, viol, str(res.message)

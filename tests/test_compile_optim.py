@@ -2,6 +2,7 @@
 limits, bad inputs, no recompilation. A 3-joint version of the shipped arm keeps compiles short."""
 
 import functools
+import logging
 import sys
 from pathlib import Path
 
@@ -40,6 +41,7 @@ from evojax_motion.timegrid import make_time_grid
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.slsqp_reference import (
     SLSQP_MAXITER,
+    ReferenceSolver,
     solve_reference,
     torque_costs_f64,
 )
@@ -57,6 +59,7 @@ TOL_COST = 1e-5  # relative: returned cost vs eq. 5 recomputed from the returned
 # relative, per condition: eq. 5 cost of the optimum searched on every 2nd sample (search_stride;
 # 12 intervals at T = 24, measured <= 0.34 % worse) vs on all samples
 TOL_STRIDE = 5e-3
+TOL_SAME_SOLVE = 1e-12  # relative: the same float64 SLSQP solve, kept programs vs fresh ones
 TOL_JACOBI = 1e-4  # relative: optimum cost on the accelerators' Jacobi path vs LAPACK's
 # relative: BFGS optimum through the CPU fast path (scalar RNEA, fusion emitters off) vs the
 # default program; the same iterations up to float32 rounding of a differently fused program
@@ -175,6 +178,31 @@ def slsqp(setup):
     # float64 precision); it must not run out of iterations.
     assert (ref.iterations < SLSQP_MAXITER).all()
     return ref
+
+
+def _compile_logs(records) -> list[str]:
+    return [r.getMessage() for r in records if "ompil" in r.getMessage()]
+
+
+def test_reference_solver_compiles_only_in_its_first_call(setup, slsqp, caplog):
+    """The timed SLSQP baseline (`benchmarks/generations_per_sec.py`) must time solves, not XLA:
+    after its first call a `ReferenceSolver` compiles nothing, whatever the batch size, and its
+    kept programs give the one-shot `solve_reference` answers."""
+    s = setup
+    solver = ReferenceSolver(
+        s["robot"], s["grid"], OptimSettings(), "jax", lower=s["lower"], upper=s["upper"]
+    )
+    batch = jax.tree_util.tree_map(lambda a: a[:GOOD], (s["basis"], s["boundary"]))
+    first = jax.tree_util.tree_map(lambda a: a[:1], batch)
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        solver(*first)
+    assert _compile_logs(caplog.records)  # the check sees compiles where there are some
+    caplog.clear()
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        ref = solver(*batch)
+    assert _compile_logs(caplog.records) == []
+    np.testing.assert_allclose(ref.cost, slsqp.cost, rtol=TOL_SAME_SOLVE)
+    np.testing.assert_array_equal(ref.iterations, slsqp.iterations)
 
 
 def gap_to_slsqp(setup, ref, out) -> np.ndarray:

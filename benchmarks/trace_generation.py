@@ -1,0 +1,119 @@
+"""Where a compiled generation's time goes on the device: a `jax.profiler` trace, summarised.
+
+Builds the configuration's generation step at ``--conditions`` as `train` runs it (compiled by
+`train.compile_generation_step`, inputs kept on the device), times ``--generations`` warm
+generations, then traces ``--traced`` more and summarises the trace (`summarise_trace`):
+
+- device: kernels per generation, the time the busiest stream is busy (``busy_us``) and the
+  span from its first kernel's start to its last one's end (``span_us``), per generation, and
+  the gaps between its kernels (the device idle: ``idle_us``, and the largest gaps with the
+  kernels around them);
+- the kernels that take the most time (name, launches and mean microseconds per launch);
+- host: the named events that take the most time in all (e.g. ``cuGraphLaunch``,
+  ``command_buffer::update``: launching and updating XLA's CUDA graphs).
+
+``busy_us / span_us`` near 1 says the device is the bound; far below, the host (launching or
+preparing work) leaves the device waiting. The timing runs without the profiler (it costs the
+host time). On CPU only the timing runs (its trace holds no device kernels). XLA settings
+come from ``XLA_FLAGS`` as usual and are recorded with the machine.
+
+Usage:
+    python benchmarks/trace_generation.py --conditions 1000 --tag gpu_1k
+Writes ``benchmarks/results/trace_generation_<tag>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+jax.config.update("jax_default_matmul_precision", "highest")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from dynamics_throughput import machine_info  # noqa: E402
+from generations_per_sec import build  # noqa: E402
+from trace_summary import read_trace, summarise_trace  # noqa: E402
+
+from evojax_motion.config import load_config  # noqa: E402
+from evojax_motion.train import compile_generation_step, stays_on_device  # noqa: E402
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default=str(ROOT / "configs" / "catch_ball.yaml"))
+    p.add_argument("--conditions", type=int, default=1000)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--generations", type=int, default=20, help="timed, after 3 warm-up ones")
+    p.add_argument("--traced", type=int, default=2, help="generations traced after the timing")
+    p.add_argument("--tag", default="")
+    p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
+    args = p.parse_args(argv)
+
+    cfg, robot, dyn, db, conds = build(load_config(args.config, args.set), args.conditions)
+    t0 = time.perf_counter()
+    step = compile_generation_step(cfg, robot, dyn, db, conds)
+    compile_s = time.perf_counter() - t0
+    if stays_on_device(cfg):  # as `train` runs its generations
+        db, conds = jax.device_put((db, conds))
+    gen = 0
+
+    def run(n: int) -> list[float]:
+        nonlocal db, gen
+        seconds = []
+        for _ in range(n):
+            gen += 1
+            t = time.perf_counter()
+            db, _stats = step(db, conds, np.asarray(gen, np.int32))
+            jax.block_until_ready(db)
+            seconds.append(time.perf_counter() - t)
+        return seconds
+
+    run(3)  # generation 1 fills empty slots; later ones are alike
+    seconds = run(args.generations)
+    trace = None  # a CPU trace holds no device kernels to summarise
+    if args.traced > 0 and jax.default_backend() != "cpu":
+        with tempfile.TemporaryDirectory(prefix="trace_generation-") as tmp:
+            with jax.profiler.trace(tmp, create_perfetto_trace=True):
+                run(args.traced)
+            trace = summarise_trace(read_trace(Path(tmp)), args.traced)
+    median = float(np.median(seconds))
+    result = {
+        "machine": machine_info(),
+        "config": args.config,
+        "overrides": args.set,
+        "conditions": args.conditions,
+        "compile_s": compile_s,
+        "seconds_per_generation": median,
+        "us_per_condition": 1e6 * median / args.conditions,
+        "seconds": seconds,
+        "traced_generations": args.traced,
+        "trace": trace,
+    }
+    line = f"{args.conditions} conditions: {1e3 * median:.2f} ms a generation "
+    line += f"({result['us_per_condition']:.2f} us a condition)"
+    if trace is not None:
+        line += (
+            f"; traced: {trace['kernels_per_generation']:.0f} kernels, device busy "
+            f"{trace['busy_us_per_generation'] / 1e3:.2f} of "
+            f"{trace['span_us_per_generation'] / 1e3:.2f} ms a generation"
+        )
+    print(line)
+    tag = args.tag or result["machine"]["platform"]
+    path = Path(args.out_dir) / f"trace_generation_{tag}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"written: {path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,94 @@
+"""benchmarks/trace_summary.py: a profiler trace's device and host time, on a trace made by hand."""
+
+import gzip
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+# benchmarks/ is not a package of the project; the summary is what trace_generation.py reports.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.trace_summary import read_trace, summarise_trace
+
+GPU, HOST = 1, 2
+COMPUTE, COPY, MAIN = 10, 11, 20
+
+
+def _meta():
+    return [
+        {"ph": "M", "name": "process_name", "pid": GPU, "args": {"name": "/device:GPU:0"}},
+        {"ph": "M", "name": "process_name", "pid": HOST, "args": {"name": "/host:CPU"}},
+        {"ph": "M", "name": "thread_name", "pid": GPU, "tid": COMPUTE,
+         "args": {"name": "Stream #14(Compute)"}},
+        {"ph": "M", "name": "thread_name", "pid": GPU, "tid": COPY,
+         "args": {"name": "Stream #15(MemcpyH2D)"}},
+    ]  # fmt: skip
+
+
+def _x(pid, tid, name, ts, dur):
+    return {"ph": "X", "pid": pid, "tid": tid, "name": name, "ts": ts, "dur": dur}
+
+
+def _trace():
+    """Two generations on the compute stream, listed out of order: kernels a (3 x 10 us), b
+    (2 x 4 us) and c (1 x 32 us); gaps 2, 50, 1, 5 and 0 us. A copy on another stream (fewer
+    events: not the one summarised) and host events."""
+    kernels = [
+        _x(GPU, COMPUTE, "b", 12, 4),  # gap 2 after a@0
+        _x(GPU, COMPUTE, "a", 0, 10),
+        _x(GPU, COMPUTE, "c", 66, 32),  # gap 50 after b@12
+        _x(GPU, COMPUTE, "a", 99, 10),  # gap 1
+        _x(GPU, COMPUTE, "b", 114, 4),  # gap 5
+        _x(GPU, COMPUTE, "a", 118, 10),  # gap 0
+    ]
+    other = [_x(GPU, COPY, "memcpy", 0, 500)]
+    host = [
+        _x(HOST, MAIN, "cuGraphLaunch", 0, 6),
+        _x(HOST, MAIN, "cuGraphLaunch", 50, 6),
+        _x(HOST, MAIN, "command_buffer::update", 20, 40),
+    ]
+    return _meta() + kernels + other + host
+
+
+def test_device_time_and_gaps_of_the_busiest_stream():
+    s = summarise_trace(_trace(), generations=2)
+    assert s["stream"] == "Stream #14(Compute)"
+    assert s["kernels_per_generation"] == 3.0
+    busy, span, idle = 3 * 10 + 2 * 4 + 32, 128, 2 + 50 + 1 + 5 + 0
+    assert s["busy_us_per_generation"] == busy / 2
+    assert s["span_us_per_generation"] == span / 2
+    assert s["idle_us_per_generation"] == idle / 2
+    assert busy + idle == span  # the stream's time is kernels or gaps
+    assert s["busy_fraction"] == pytest.approx(busy / span, rel=1e-12)
+    assert s["largest_gaps"][0] == {"us": 50, "after": "b", "before": "c"}
+    assert [g["us"] for g in s["largest_gaps"]] == [50, 5, 2, 1, 0]
+
+
+def test_kernels_and_host_events_ranked_by_time():
+    s = summarise_trace(_trace(), generations=2)
+    assert s["top_kernels"] == [
+        {"name": "c", "per_generation": 0.5, "mean_us": 32.0},
+        {"name": "a", "per_generation": 1.5, "mean_us": 10.0},
+        {"name": "b", "per_generation": 1.0, "mean_us": 4.0},
+    ]
+    assert s["top_host_events"] == [
+        {"name": "command_buffer::update", "per_generation": 0.5, "us_per_generation": 20.0},
+        {"name": "cuGraphLaunch", "per_generation": 1.0, "us_per_generation": 6.0},
+    ]
+
+
+def test_a_trace_without_device_events_is_refused():
+    host_only = [e for e in _trace() if e.get("pid") != GPU]
+    with pytest.raises(ValueError, match="no device events"):
+        summarise_trace(host_only, generations=1)
+
+
+def test_read_trace_reads_the_one_gzipped_trace(tmp_path):
+    with pytest.raises(FileNotFoundError, match="found 0"):
+        read_trace(tmp_path)
+    folder = tmp_path / "plugins" / "profile" / "run"
+    folder.mkdir(parents=True)
+    with gzip.open(folder / "host.trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": _trace()}, f)
+    assert read_trace(tmp_path) == _trace()
