@@ -155,10 +155,9 @@ class ReferenceSolver:
     ):
         if gradient not in GRADIENTS:
             raise ValueError(f"gradient: expected one of {GRADIENTS}, got {gradient!r}")
-        self.robot, self.grid, self.gradient = robot, grid, gradient
-        self.settings = OptimSettings() if settings is None else settings
+        self.gradient = gradient
         self.maxiter, self.ftol = maxiter, ftol
-        st = self.settings
+        st = OptimSettings() if settings is None else settings
         lower = robot.lower if lower is None else lower
         upper = robot.upper if upper is None else upper
         self.lo = np.asarray(lower, np.float64) + st.limit_margin
@@ -191,7 +190,7 @@ class ReferenceSolver:
         one = jax.tree_util.tree_map(lambda a: a[i : i + 1], (basis, boundary))
         prob = jax.tree_util.tree_map(
             lambda a: np.asarray(a[0], np.float64) if a.dtype.kind == "f" else np.asarray(a[0]),
-            jax.tree_util.tree_map(np.asarray, self.build(*one)),
+            self.build(*one),
         )
         with jax.enable_x64(True), _on_cpu():
             return self._slsqp(prob)
