@@ -59,8 +59,8 @@ from evojax_motion.config import config_from_dict, config_to_dict, load_config  
 from evojax_motion.timegrid import make_time_grid  # noqa: E402
 from evojax_motion.train import (  # noqa: E402
     compile_generation_step,
+    generation_inputs,
     initial_state,
-    stays_on_device,
 )
 from evojax_motion.workflow import make_robot_dynamics  # noqa: E402
 
@@ -93,6 +93,20 @@ def exact_lists(cfg, db, conds, valid: list) -> list[float] | None:
     return [float(among(v)) for v in valid]
 
 
+def run_generations(compiled, db, conds, first: int, n: int):
+    """Generations ``first .. first + n - 1`` of the compiled step, each timed to its end:
+    ``(db, seconds, stats, valid)``, ``valid`` the ``db.valid`` each generation read."""
+    seconds, stats, valid = [], [], []
+    for g in range(first, first + n):
+        valid.append(db.valid)
+        t0 = time.perf_counter()
+        db, st = compiled(db, conds, np.asarray(g, np.int32))
+        jax.block_until_ready(db)
+        seconds.append(time.perf_counter() - t0)
+        stats.append(st)
+    return db, seconds, stats, valid
+
+
 def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
     """Compile the generation step ahead of time (as `train` does: with JAX's persistent cache on,
     the traced program is reused too), then time ``generations`` generations."""
@@ -101,16 +115,9 @@ def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
     compile_s = time.perf_counter() - t0
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
-    if stays_on_device(cfg):  # as `train` runs its generations
-        db, conds = jax.device_put((db, conds))
-    seconds, costs, valid = [], [], []
-    for g in range(1, generations + 1):
-        valid.append(db.valid)
-        t0 = time.perf_counter()
-        db, stats = compiled(db, conds, np.asarray(g, np.int32))
-        jax.block_until_ready(db)
-        seconds.append(time.perf_counter() - t0)
-        costs.append(float(stats.db_cost_mean))
+    db, conds = generation_inputs(cfg, db, conds)  # as `train` runs its generations
+    db, seconds, stats, valid = run_generations(compiled, db, conds, 1, generations)
+    costs = [float(st.db_cost_mean) for st in stats]
     # Generation 1 fills empty slots (different work than later ones): report both.
     later = seconds[1:] or seconds
     return {

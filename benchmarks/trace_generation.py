@@ -40,11 +40,13 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402
-from generations_per_sec import build  # noqa: E402
+from generations_per_sec import build, run_generations  # noqa: E402
 from trace_summary import read_trace, summarise_trace  # noqa: E402
 
 from evojax_motion.config import load_config  # noqa: E402
-from evojax_motion.train import compile_generation_step, stays_on_device  # noqa: E402
+from evojax_motion.train import compile_generation_step, generation_inputs  # noqa: E402
+
+WARM_UP = 3  # generations run before the timed ones
 
 
 def main(argv=None) -> dict:
@@ -52,7 +54,9 @@ def main(argv=None) -> dict:
     p.add_argument("--config", default=str(ROOT / "configs" / "catch_ball.yaml"))
     p.add_argument("--conditions", type=int, default=1000)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--generations", type=int, default=20, help="timed, after 3 warm-up ones")
+    p.add_argument(
+        "--generations", type=int, default=20, help=f"timed, after {WARM_UP} warm-up ones"
+    )
     p.add_argument("--traced", type=int, default=2, help="generations traced after the timing")
     p.add_argument("--tag", default="")
     p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
@@ -62,28 +66,15 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     step = compile_generation_step(cfg, robot, dyn, db, conds)
     compile_s = time.perf_counter() - t0
-    if stays_on_device(cfg):  # as `train` runs its generations
-        db, conds = jax.device_put((db, conds))
-    gen = 0
-
-    def run(n: int) -> list[float]:
-        nonlocal db, gen
-        seconds = []
-        for _ in range(n):
-            gen += 1
-            t = time.perf_counter()
-            db, _stats = step(db, conds, np.asarray(gen, np.int32))
-            jax.block_until_ready(db)
-            seconds.append(time.perf_counter() - t)
-        return seconds
-
-    run(3)  # generation 1 fills empty slots; later ones are alike
-    seconds = run(args.generations)
+    db, conds = generation_inputs(cfg, db, conds)  # as `train` runs its generations
+    # generation 1 fills empty slots; later ones are alike
+    db, _, _, _ = run_generations(step, db, conds, 1, WARM_UP)
+    db, seconds, _, _ = run_generations(step, db, conds, 1 + WARM_UP, args.generations)
     trace = None  # a CPU trace holds no device kernels to summarise
     if args.traced > 0 and jax.default_backend() != "cpu":
         with tempfile.TemporaryDirectory(prefix="trace_generation-") as tmp:
             with jax.profiler.trace(tmp, create_perfetto_trace=True):
-                run(args.traced)
+                run_generations(step, db, conds, 1 + WARM_UP + args.generations, args.traced)
             trace = summarise_trace(read_trace(Path(tmp)), args.traced)
     median = float(np.median(seconds))
     result = {

@@ -472,11 +472,11 @@ def _bfgs_update(bm, s, y, accept, hm=None):
     """Powell-damped BFGS update of ``bm (B, n, n)`` where ``accept``; keeps it SPD. With
     ``hm = bm^-1``, returns ``(bm, hm)`` updated alike (the same update in inverse form)."""
     bs = jnp.einsum("bij,bj->bi", bm, s)
-    sbs = jnp.sum(s * bs, axis=1)
-    sy = jnp.sum(s * y, axis=1)
+    sbs = _dot_rows(s, bs)
+    sy = _dot_rows(s, y)
     theta = jnp.where(sy >= 0.2 * sbs, 1.0, 0.8 * sbs / jnp.maximum(sbs - sy, 1e-30))
     r = theta[:, None] * y + (1.0 - theta[:, None]) * bs
-    sr = jnp.sum(s * r, axis=1)
+    sr = _dot_rows(s, r)
     tiny = jnp.finfo(bm.dtype).tiny
     upd = accept & (sbs > tiny) & (sr > tiny)
     new = (
@@ -563,6 +563,7 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
     """
     b, n = z0.shape
     dtype = z0.dtype
+    tiny = jnp.finfo(dtype).tiny
     idx = jnp.arange(b)
     values = jax.vmap(fun)
     value_grad = jax.vmap(jax.value_and_grad(fun))
@@ -580,7 +581,7 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
 
     def initial_sigma(g):
         """Curvature of the first model, ``sigma I``: a first step of ``RADIUS_INIT`` along -g."""
-        return jnp.maximum(jnp.linalg.norm(g, axis=1), jnp.finfo(dtype).tiny) / RADIUS_INIT
+        return jnp.maximum(jnp.linalg.norm(g, axis=1), tiny) / RADIUS_INIT
 
     def grad(z):
         f, g = value_grad(z, idx)
@@ -614,12 +615,11 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
             # A quasi-Newton model that no step length along its direction confirms is wrong:
             # restart it as a steepest-descent model scaled to the (shrunk) radius.
             reset = st["active"] & ~accept
-            radius = jnp.maximum(st["radius"], jnp.finfo(dtype).tiny)
+            radius = jnp.maximum(st["radius"], tiny)
             sigma = jnp.linalg.norm(g, axis=1) / radius
             updated = jnp.where(reset[:, None, None], sigma[:, None, None] * eye, updated)
             sigma0 = initial_sigma(g_new)
             bm_new = jnp.where(first, sigma0[:, None, None] * eye, updated)
-            tiny = jnp.finfo(dtype).tiny
             h_upd = jnp.where(
                 reset[:, None, None], eye / jnp.maximum(sigma, tiny)[:, None, None], h_upd
             )
@@ -644,7 +644,7 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         trial = z[None] + scales[:, None, None] * jnp.where(active[:, None], p, 0.0)[None]
         f_s = jax.vmap(lambda zz: values(zz, idx))(trial)  # (S, B)
         pred = -(scales[:, None] * gp + 0.5 * scales[:, None] ** 2 * pbp)
-        rho = (f - f_s) / jnp.maximum(pred, jnp.finfo(dtype).tiny)
+        rho = (f - f_s) / jnp.maximum(pred, tiny)
         ok_s = jnp.isfinite(f_s) & (f_s < f) & (rho > RHO_ACCEPT)
         longest = jnp.argmax(ok_s, axis=0)  # index of the longest acceptable length
         accept = active & jnp.any(ok_s, axis=0)

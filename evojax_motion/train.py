@@ -445,7 +445,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         total=evo.generations, initial=start, disable=not progress, desc="evolution", unit="gen"
     )
     resident = stays_on_device(cfg)
-    db_in, conditions_in = jax.device_put((db, conditions)) if resident else (db, conditions)
+    db_in, conditions_in = generation_inputs(cfg, db, conditions)
     try:
         for g in range(start + 1, evo.generations + 1):
             t0 = time.perf_counter()
@@ -497,6 +497,14 @@ def stays_on_device(cfg: Config) -> bool:
     from evojax_motion.parallel import resolve_devices
 
     return len(resolve_devices(cfg.parallel.devices)) == 1
+
+
+def generation_inputs(cfg: Config, db, conditions):
+    """``(db, conditions)`` as the generation step takes them from the first generation on: put
+    on the device once where they stay there (`stays_on_device`), else as given."""
+    import jax
+
+    return jax.device_put((db, conditions)) if stays_on_device(cfg) else (db, conditions)
 
 
 def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
