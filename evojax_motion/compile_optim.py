@@ -24,13 +24,14 @@ Optimisers (``OptimSettings.method``), batched over conditions (and starts):
     1/4 and 1/16 of the step (three cheap values) before it gives up on a direction, and stops on
     the Newton decrement (``tol``) or the budget. ``hessian_every > 1`` refreshes the Hessian
     only every so many iterations, with damped BFGS updates in between.
-  - ``"bfgs"``: the same trust-region loop with a damped-BFGS model instead of the Hessian (no
-    second derivatives: ~10x cheaper per iteration on a CPU, but it settles in a worse local
-    minimum than SLSQP in ~10 % of conditions, see the table below). The model is positive
-    definite, so the step minimises it on the plane of the gradient and the Newton step
-    (`_subspace_step`; Nocedal & Wright, sec. 4.1), from the model and its
-    inverse, updated alike: no eigendecomposition (on GPUs a cuSOLVER call per iteration, 22 %
-    of an iteration at 1,000 conditions on an H100).
+  - ``"bfgs"``: the same trust-region loop with a quasi-Newton model instead of the Hessian (no
+    second derivatives of the dynamics: ~10x cheaper per iteration on a CPU): the limit
+    penalty's exact Hessian (`penalty_model`) plus a damped-BFGS model of the torque cost,
+    started from its Gauss-Newton matrix (``initial_model``, `gauss_newton_model`). The model
+    is positive definite, so the step minimises it on the plane of the gradient and the Newton
+    step (`_subspace_step`; Nocedal & Wright, sec. 4.1; the Newton step by `_cholesky_solve`):
+    no eigendecomposition (on GPUs a cuSOLVER call per iteration, 22 % of an iteration at 1,000
+    conditions on an H100).
   - ``"adam"``: plain ``optax.adam`` in z for ``max_iters`` steps (the paper's projected-gradient
     baseline, kept for comparison).
   - ``"lbfgs"``: ``optax.lbfgs`` with its zoom line search, stopped on the gradient norm.
@@ -102,6 +103,15 @@ DIRECTION_RTOL = 1e-5
 # Trust region of the Newton method, in z [rad RMS of q]: a first step may move q by 0.3 rad.
 RADIUS_INIT, RADIUS_MIN, RADIUS_MAX = 0.3, 1e-7, 1e2
 STEP_SCALES = (1.0, 0.25, 0.0625)  # fractions of the trust-region step tried in one iteration
+# CPU loop: shorter step lengths are evaluated for the failing problems in groups of B / this.
+LAZY_GROUPS = 4
+# BFGS's first model of the torque cost (``initial_model="gauss-newton"``): the Gauss-Newton
+# matrix on every GN_NODE_STRIDE-th search node, plus GN_RIDGE times its largest diagonal entry.
+# Paper configuration, 100 conditions, 2 CPU cores (`benchmarks/changes.md`): strides 1, 2, 3
+# and 5 took 20, 20, 18 and 21.5 iterations (median) and 74, -, 25, - ms per 300 conditions.
+GN_NODE_STRIDE = 3
+GN_RIDGE = 1e-4
+INITIAL_MODELS = ("gauss-newton", "identity")
 RHO_ACCEPT, RHO_BAD, RHO_GOOD = 1e-4, 0.25, 0.75  # ratio of actual to predicted decrease
 # Default `OptimSettings.max_batch` (chosen on an H100: docs/scaling.md).
 MAX_BATCH = 4096
@@ -148,6 +158,10 @@ class OptimSettings:
       its working set leaving the GPU's cache; not proven), and with BFGS's subspace step
       chunks of ~4,000 ran 16-22 % faster than of ~7,700 at 30,000 and 100,000 conditions
       (`docs/scaling.md`); null: the whole batch at once.
+    - ``initial_model``: BFGS only, its first model of the torque cost: ``"gauss-newton"``
+      (`gauss_newton_model`: forward-mode Jacobians on a third of the nodes, ~3 optimiser
+      passes' cost; paper configuration: 18 iterations median instead of 36, and p95 gap to
+      SLSQP 1.1 % instead of 3.1 %) or ``"identity"`` (a multiple of it, no derivatives).
     """
 
     n_components: int = 4
@@ -165,6 +179,7 @@ class OptimSettings:
     seed: int = 0
     bc_leak: float = BC_LEAK
     max_batch: int | None = MAX_BATCH
+    initial_model: str = "gauss-newton"
 
     def __post_init__(self):
         _check(
@@ -222,6 +237,12 @@ class OptimSettings:
             "max_batch",
             "an integer >= 1 or null",
             self.max_batch,
+        )
+        _check(
+            self.initial_model in INITIAL_MODELS,
+            "initial_model",
+            f"one of {INITIAL_MODELS}",
+            self.initial_model,
         )
 
     def resolved(self) -> OptimSettings:
@@ -378,14 +399,88 @@ def limit_penalty(w, q, duration, lo, hi, weight) -> jnp.ndarray:
 
 def fused_products() -> bool:
     """Whether the search objective forms q, qd, qdd at its nodes by elementwise products and a
-    sum (accelerators) or by an einsum (CPU). Read at trace time.
+    sum (accelerators) or by an einsum (CPU, where `joint_lists` does not apply). Read at trace
+    time.
 
-    On an H100 the einsum (a product over the 2 free directions per joint, and in the gradient
-    over the nodes) ran as a GEMM kernel of its own, 37 us of a 309 us optimiser pass at 1,000
-    conditions; as products XLA fuses it into the dynamics' kernels. On 2 CPU cores the products
-    made a paper-scale generation 4-23 % slower in an A/B (`benchmarks/changes.md`).
+    On 2 CPU cores the products made a paper-scale generation 4-23 % slower in an A/B
+    (`benchmarks/changes.md`). On an H100 the einsum (a product over the 2 free directions per
+    joint, and in the gradient over the nodes) ran as a GEMM kernel of its own, 37 us of a 309
+    us optimiser pass at 1,000 conditions; as products XLA fuses it into the dynamics' kernels.
     """
     return jax.default_backend() != "cpu"
+
+
+def node_states(z, problem: Problem, joint_lists: bool = False):
+    """q, qd and qdd of one condition at its M search nodes for ``z (J, F)``: ``(3, M, J)``, or
+    with ``joint_lists`` three lists of J arrays ``(M,)``, each joint's formed from its own
+    slices of the node arrays (`joint_lists`: on the CPU, for dynamics that read them as they
+    are, `dynamics.Dynamics.form`).
+
+    Why joint by joint on the CPU: the gradient then reaches z joint by joint. Sliced from one
+    array, the cotangents are padded back into it, and XLA's CPU compiler emitted the RNEA's
+    adjoint as one loop over that array's elements that recomputed the shared adjoint for every
+    element: the value and gradient of the paper-scale batch took 9.6 ms there against 5.2 ms
+    this way (2 CPU cores, 300 conditions x 26 nodes; `benchmarks/changes.md`). For the vector
+    layout, which stacks them again, lists made the float64 SLSQP reference 10 % slower.
+    """
+    if not joint_lists:
+        if fused_products():
+            return problem.node_ls + jnp.sum(z * problem.node_dirs, axis=-1)
+        return problem.node_ls + jnp.einsum(
+            "jf,amjf->amj", z, problem.node_dirs, precision=jax.lax.Precision.HIGHEST
+        )
+    ls, dirs = problem.node_ls, problem.node_dirs
+
+    def joint(a, j):
+        return ls[a, :, j] + sum(z[j, f] * dirs[a, :, j, f] for f in range(dirs.shape[-1]))
+
+    return [[joint(a, j) for j in range(ls.shape[-1])] for a in range(3)]
+
+
+def joint_lists(dyn: Dynamics) -> bool:
+    """Whether the search objective hands ``dyn`` joint-by-joint node states (`node_states`): on
+    the CPU, with the scalar RNEA layout. Read at trace time."""
+    return not fused_products() and dyn.form == "scalar"
+
+
+def penalty_model(z, problems: Problem, lo, hi, weight):
+    """Gradient ``(B, J F)`` and Hessian ``(B, J F, J F)`` of `limit_penalty` at the search
+    nodes for a batch of problems at ``z (B, J F)``, in closed form (q is linear in z, the
+    penalty a sum of squared violations): per joint, ``2 weight D sum_m w_m v_m d_m`` and
+    ``2 weight D sum_m w_m [q_m outside] d_m d_m^T``, ``d_m (F,)`` the joint's directions at
+    node m, ``v_m`` its signed violation; joints do not mix (block diagonal). The BFGS method's
+    exact part of its model (`_trust_region`)."""
+    dirs = problems.node_dirs[:, 0]  # (B, M, J, F)
+    b, _, j, f = dirs.shape
+    q = problems.node_ls[:, 0] + jnp.sum(z.reshape(b, 1, j, f) * dirs, axis=-1)  # (B, M, J)
+    viol = jnp.maximum(q - hi, 0.0) - jnp.maximum(lo - q, 0.0)
+    c = (2.0 * weight * problems.duration)[:, None] * problems.node_w  # (B, M)
+    g = jnp.einsum("bm,bmj,bmjf->bjf", c, viol, dirs, precision=jax.lax.Precision.HIGHEST)
+    outside = (viol != 0.0).astype(dirs.dtype)
+    blocks = jnp.einsum(
+        "bm,bmj,bmjf,bmjg->bjfg", c, outside, dirs, dirs, precision=jax.lax.Precision.HIGHEST
+    )
+    h = jnp.einsum("bjfg,jk->bjfkg", blocks, jnp.eye(j, dtype=dirs.dtype))
+    return g.reshape(b, j * f), h.reshape(b, j * f, j * f)
+
+
+def gauss_newton_model(dyn: Dynamics, problems: Problem, z, every: int):
+    """Gauss-Newton model ``D sum_m w_m J_m^T J_m`` of the torque cost's Hessian for a batch of
+    problems at ``z (B, J F)``: ``(B, J F, J F)``, ``J_m = d tau_m / d z`` (forward mode) at every
+    ``every``-th search node, its weights scaled to the same total. The BFGS method's first
+    model of the torque cost (`_trust_region`)."""
+    b, _, _, j, f = problems.node_dirs.shape
+    w = problems.node_w[:, ::every]
+    w = w * (jnp.sum(problems.node_w, axis=1) / jnp.sum(w, axis=1))[:, None]
+    nodes = problems.node_ls[:, :, ::every], problems.node_dirs[:, :, ::every]
+    sub = problems._replace(node_ls=nodes[0], node_dirs=nodes[1], node_w=w)
+
+    def residual(zf, prob: Problem):
+        tau = jax.vmap(dyn.inverse)(*node_states(zf.reshape(j, f), prob, joint_lists(dyn)))
+        return tau * jnp.sqrt(prob.duration * prob.node_w)[:, None]
+
+    jac = jax.vmap(jax.jacfwd(residual))(z, sub).reshape(b, -1, j * f)
+    return jnp.einsum("bri,brk->bik", jac, jac, precision=jax.lax.Precision.HIGHEST)
 
 
 def make_objective(dyn: Dynamics, lo, hi, weight):
@@ -393,20 +488,18 @@ def make_objective(dyn: Dynamics, lo, hi, weight):
     problem's quadrature nodes (`search_nodes`; stride 1: the time grid's, eq. 5 exactly).
 
     q, qd and qdd are linear in z, so one evaluation is a product with the precomputed node
-    arrays of `Problem` and the inverse dynamics at the M nodes (no derivative operators).
+    arrays of `Problem` (`node_states`) and the inverse dynamics at the M nodes (no derivative
+    operators).
     """
 
     def objective(z, problem: Problem):
-        if fused_products():
-            x = problem.node_ls + jnp.sum(z * problem.node_dirs, axis=-1)
-        else:
-            x = problem.node_ls + jnp.einsum(
-                "jf,amjf->amj", z, problem.node_dirs, precision=jax.lax.Precision.HIGHEST
-            )
-        tau = jax.vmap(dyn.inverse)(x[0], x[1], x[2])
+        lists = joint_lists(dyn)
+        q, qd, qdd = node_states(z, problem, lists)
+        tau = jax.vmap(dyn.inverse)(q, qd, qdd)
         w = problem.node_w.astype(tau.dtype)
         cost = 0.5 * problem.duration * jnp.sum(w * jnp.sum(tau**2, -1))
-        return cost + limit_penalty(w, x[0], problem.duration, lo, hi, weight), cost
+        q_nodes = jnp.stack(q, axis=-1) if lists else q
+        return cost + limit_penalty(w, q_nodes, problem.duration, lo, hi, weight), cost
 
     return objective
 
@@ -468,10 +561,10 @@ def _matvec(m, x):
     return jnp.sum(m * x[:, None, :], axis=-1)
 
 
-def _bfgs_update(bm, s, y, accept, hm=None):
-    """Powell-damped BFGS update of ``bm (B, n, n)`` where ``accept``; keeps it SPD. With
-    ``hm = bm^-1``, returns ``(bm, hm)`` updated alike (the same update in inverse form)."""
-    bs = jnp.einsum("bij,bj->bi", bm, s)
+def _bfgs_update(bm, s, y, accept):
+    """Powell-damped BFGS update of ``bm (B, n, n)`` with the pairs ``s, y (B, n)`` where
+    ``accept (B,)``; keeps it symmetric positive definite."""
+    bs = _matvec(bm, s)
     sbs = _dot_rows(s, bs)
     sy = _dot_rows(s, y)
     theta = jnp.where(sy >= 0.2 * sbs, 1.0, 0.8 * sbs / jnp.maximum(sbs - sy, 1e-30))
@@ -481,19 +574,43 @@ def _bfgs_update(bm, s, y, accept, hm=None):
     upd = accept & (sbs > tiny) & (sr > tiny)
     new = (
         bm
-        - jnp.einsum("bi,bj->bij", bs, bs) / jnp.where(upd, sbs, 1.0)[:, None, None]
-        + jnp.einsum("bi,bj->bij", r, r) / jnp.where(upd, sr, 1.0)[:, None, None]
+        - bs[:, :, None] * bs[:, None, :] / jnp.where(upd, sbs, 1.0)[:, None, None]
+        + r[:, :, None] * r[:, None, :] / jnp.where(upd, sr, 1.0)[:, None, None]
     )
-    new = jnp.where(upd[:, None, None], new, bm)
-    if hm is None:
-        return new
-    rho = (1.0 / jnp.where(upd, sr, 1.0))[:, None, None]
-    hr = _matvec(hm, r)
-    rhr = _dot_rows(r, hr)[:, None, None]
-    ss = s[:, :, None] * s[:, None, :]
-    new_h = hm - rho * (s[:, :, None] * hr[:, None, :] + hr[:, :, None] * s[:, None, :])
-    new_h = new_h + (rho**2 * rhr + rho) * ss
-    return new, jnp.where(upd[:, None, None], new_h, hm)
+    return jnp.where(upd[:, None, None], new, bm)
+
+
+def _cholesky_solve(a, b):
+    """``a^-1 b`` for symmetric positive definite ``a (B, n, n)`` and ``b (B, n)``, batched, by a
+    Cholesky factorisation unrolled into elementwise operations (n is small: no solver call per
+    iteration, which on GPUs is a cuSOLVER launch). Returns ``(x, ok)``, ``ok (B,)`` False where
+    ``a`` was not numerically positive definite (x is then not finite or meaningless)."""
+    n = a.shape[-1]
+    rows = jnp.arange(n)
+    cols = []  # columns of L, (B, n) each, zero above the diagonal
+    ok = jnp.ones(a.shape[:1], bool)
+    for k in range(n):
+        c = a[:, :, k]
+        for i in range(k):
+            c = c - cols[i] * cols[i][:, k : k + 1]
+        d = c[:, k]
+        ok = ok & (d > 0)
+        root = jnp.sqrt(jnp.where(d > 0, d, 1.0))
+        cols.append(jnp.where(rows >= k, c / root[:, None], 0.0))
+    y = []  # L y = b
+    for k in range(n):
+        t = b[:, k]
+        for i in range(k):
+            t = t - cols[i][:, k] * y[i]
+        y.append(t / cols[k][:, k])
+    x = [None] * n  # L^T x = y
+    for k in reversed(range(n)):
+        t = y[k]
+        for i in range(k + 1, n):
+            t = t - cols[k][:, i] * x[i]
+        x[k] = t / cols[k][:, k]
+    x = jnp.stack(x, axis=1)
+    return x, ok & jnp.all(jnp.isfinite(x), axis=1)
 
 
 def _eigh_2x2(a, b, c):
@@ -512,22 +629,21 @@ def _eigh_2x2(a, b, c):
     return jnp.stack([lo, hi], -1), v
 
 
-def _subspace_step(bm, hm, g, radius):
+def _subspace_step(bm, pn, g, radius):
     """Trust-region step of the positive definite model ``g.p + p.B.p / 2`` within ``|p| <=
     radius`` on the plane of ``g`` and the Newton step ``-B^-1 g`` (two-dimensional subspace
     minimisation: Byrd, Schnabel & Shultz 1988; Nocedal & Wright, sec. 4.1), batched:
-    ``bm (B, n, n)`` the model, ``hm`` its inverse, ``g (B, n)``, ``radius (B,)``. The plane holds
-    the Newton step (taken where it fits) and the dogleg path; on it the subproblem is solved
-    exactly (`_trust_region_step` on the 2 x 2 model). Returns ``p``, the predicted decrease and
-    the Newton decrement ``g.B^-1.g / 2``, like `_trust_region_step`, without the n x n
-    eigendecomposition (a cuSOLVER call per iteration on GPUs).
+    ``bm (B, n, n)`` the model, ``pn (B, n)`` its Newton step, ``g (B, n)``, ``radius (B,)``.
+    The plane holds the Newton step (taken where it fits) and the dogleg path; on it the
+    subproblem is solved exactly (`_trust_region_step` on the 2 x 2 model). Returns ``p``, the
+    predicted decrease and the Newton decrement ``g.B^-1.g / 2``, like `_trust_region_step`,
+    without the n x n eigendecomposition (a cuSOLVER call per iteration on GPUs).
 
     Paper configuration, 100 conditions, 40 iterations, 2 CPU cores, gap to float64 SLSQP:
     median 0.021 % (the n x n exact step: 0.021 %; the dogleg step: 0.107 %); measured with
     LAPACK solving the 2 x 2 problems, before the closed form (`benchmarks/changes.md`).
     """
     tiny = jnp.finfo(g.dtype).tiny
-    pn = -_matvec(hm, g)
     u1 = -g / jnp.maximum(jnp.sqrt(_dot_rows(g, g)), tiny)[:, None]
     w = pn - _dot_rows(pn, u1)[:, None] * u1
     wn = jnp.sqrt(_dot_rows(w, w))
@@ -545,21 +661,31 @@ def _subspace_step(bm, hm, g, radius):
     return p, pred, decrement
 
 
-def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) -> _Result:
+def _trust_region(
+    fun, z0, free, settings: OptimSettings, exact: bool = True, known=None, initial=None
+) -> _Result:
     """Batched trust-region Newton / quasi-Newton on ``fun(z (n,), i) -> scalar`` for B problems.
 
     ``z0, free: (B, n)``; problem ``i`` of the batch is ``fun(z, i)``. With ``exact`` the model
     Hessian is the exact one every ``settings.hessian_every`` iterations and a damped BFGS update
-    of it in between (skipped where it would not keep the curvature along the step positive);
-    without, it starts as a multiple of the identity (a first step of ``RADIUS_INIT`` along -g)
-    and is only BFGS-updated: no second derivatives at all. An exact Hessian may be indefinite,
-    so its steps solve the trust-region subproblem exactly (`_trust_region_step`, an
-    eigendecomposition per iteration); the BFGS model stays positive definite, and its inverse,
-    updated alike, gives two-dimensional subspace steps (`_subspace_step`: no n x n
-    eigendecomposition). The loop runs on the
-    whole batch with an unbatched iteration counter, so the exact Hessian is computed only on the
-    iterations that need it (a batched predicate would turn ``lax.cond`` into a select that always
-    evaluates both branches).
+    of it in between (skipped where it would not keep the curvature along the step positive).
+    An exact Hessian may be indefinite, so its steps solve the trust-region subproblem exactly
+    (`_trust_region_step`, an eigendecomposition per iteration).
+
+    Without ``exact`` (BFGS) no second derivatives of ``fun`` are taken. ``known(z (B, n)) ->
+    (gradient (B, n), Hessian (B, n, n))``, optional, is a cheap part of ``fun`` (the joint-limit
+    penalty, `penalty_model`: no dynamics): the model is its exact Hessian at the current point
+    plus a damped-BFGS model of the rest, which
+    starts as a multiple of the identity (a first step of ``RADIUS_INIT`` along -g) and learns
+    from the rest's gradient differences only (a structured quasi-Newton model: Dennis &
+    Schnabel, ch. 11). The penalty's curvature (``limit_penalty`` = 1e4 against torque
+    curvatures of ~1) switches on and off as samples cross a limit: a plain BFGS model had to
+    relearn it. The model is positive definite; its Newton step (`_cholesky_solve`) and the
+    gradient span the plane of the two-dimensional subspace step (`_subspace_step`).
+
+    The loop runs on the whole batch with an unbatched iteration counter, so the exact Hessian
+    is computed only on the iterations that need it (a batched predicate would turn ``lax.cond``
+    into a select that always evaluates both branches).
     """
     b, n = z0.shape
     dtype = z0.dtype
@@ -569,19 +695,23 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
     value_grad = jax.vmap(jax.value_and_grad(fun))
     hessian = jax.vmap(jax.hessian(fun))
     eye = jnp.eye(n, dtype=dtype)
+    pair = free[:, :, None] & free[:, None, :]
+    lazy = not fixed_trip_loops()
 
     def model_hessian(z):
         h = hessian(z, idx)
         h = 0.5 * (h + jnp.swapaxes(h, 1, 2))
-        pair = free[:, :, None] & free[:, None, :]
         # Masked directions do not move q: unit curvature (and zero gradient) keeps them still.
         h = jnp.where(pair, h, 0.0) + jnp.where(free, 0.0, 1.0)[:, :, None] * eye
         ok = jnp.all(jnp.isfinite(h), axis=(1, 2))
         return jnp.where(ok[:, None, None], h, eye)
 
-    def initial_sigma(g):
-        """Curvature of the first model, ``sigma I``: a first step of ``RADIUS_INIT`` along -g."""
-        return jnp.maximum(jnp.linalg.norm(g, axis=1), tiny) / RADIUS_INIT
+    def known_part(z):
+        """Gradient and Hessian of the known part (zero without it), on the free directions."""
+        if known is None:
+            return jnp.zeros_like(z), jnp.zeros((b, n, n), dtype)
+        g, h = known(z)
+        return jnp.where(free, g, 0.0), jnp.where(pair, h, 0.0)
 
     def grad(z):
         f, g = value_grad(z, idx)
@@ -589,6 +719,30 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         return f, jnp.where(free & ok[:, None], g, 0.0), ok
 
     scales = jnp.asarray(STEP_SCALES, dtype)
+
+    def trial_values(z, p, active, f):
+        """``(S, B)`` objective at ``z + scale * p`` for the `STEP_SCALES`. With ``lazy`` (the CPU
+        loop) the shorter lengths are evaluated only for the problems whose full step fails,
+        in groups of ``B / LAZY_GROUPS``; the others' are +inf, never used: the longest
+        acceptable length is taken, so the iterates are those of evaluating all."""
+        steps = scales[:, None, None] * jnp.where(active[:, None], p, 0.0)[None]
+        if not lazy:
+            return jax.vmap(lambda s: values(z + s, idx))(steps)
+        f_full = values(z + steps[0], idx)
+        fail = active & ~(jnp.isfinite(f_full) & (f_full < f))
+        cap = max(1, b // LAZY_GROUPS)
+        order = jnp.nonzero(fail, size=b + cap, fill_value=b)[0]  # b: no problem (dropped)
+
+        def group(k, rest):
+            sel = jax.lax.dynamic_slice(order, (k * cap,), (cap,))
+            pick = jnp.minimum(sel, b - 1)
+            short = jax.vmap(lambda s: values(z[pick] + s[pick], pick))(steps[1:])
+            return rest.at[:, sel].set(short, mode="drop")
+
+        groups = (jnp.sum(fail) + cap - 1) // cap
+        rest = jnp.full((len(STEP_SCALES) - 1, b), jnp.inf, dtype)
+        rest = jax.lax.fori_loop(0, groups, group, rest)
+        return jnp.concatenate([f_full[None], rest])
 
     # One pass of the loop evaluates the gradient at the point the previous pass proposed
     # (``zp``; the first pass: z0), completes that iteration (acceptance, model update), then
@@ -610,22 +764,30 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
                 lambda: model_hessian(z_new),
                 lambda: _bfgs_update(bm, z_new - z, g_new - g, accept),
             )
+            st = dict(st, bm=bm_new)
         else:
-            updated, h_upd = _bfgs_update(bm, z_new - z, g_new - g, accept, st["hm"])
+            gk, hk = known_part(z_new)
+            rest, rest_old = g_new - gk, g - st["gk"]
+            updated = _bfgs_update(st["br"], z_new - z, rest - rest_old, accept)
             # A quasi-Newton model that no step length along its direction confirms is wrong:
             # restart it as a steepest-descent model scaled to the (shrunk) radius.
             reset = st["active"] & ~accept
             radius = jnp.maximum(st["radius"], tiny)
-            sigma = jnp.linalg.norm(g, axis=1) / radius
+            sigma = jnp.maximum(jnp.linalg.norm(rest_old, axis=1), tiny) / radius
             updated = jnp.where(reset[:, None, None], sigma[:, None, None] * eye, updated)
-            sigma0 = initial_sigma(g_new)
-            bm_new = jnp.where(first, sigma0[:, None, None] * eye, updated)
-            h_upd = jnp.where(
-                reset[:, None, None], eye / jnp.maximum(sigma, tiny)[:, None, None], h_upd
-            )
-            st = dict(st, hm=jnp.where(first, eye / sigma0[:, None, None], h_upd))
+            sigma0 = jnp.maximum(jnp.linalg.norm(rest, axis=1), tiny) / RADIUS_INIT
+            start = sigma0[:, None, None] * eye
+            if initial is not None:  # the Gauss-Newton model where it is usable
+                start = jnp.where(st["b0_ok"][:, None, None], st["b0"], start)
+            br = jnp.where(first, start, updated)
+            bm_new = br + hk
+            pn, ok = _cholesky_solve(bm_new, -g_new)
+            # Not numerically positive definite (float32): a steepest-descent step instead.
+            fallback = -g_new / jnp.maximum(jnp.linalg.norm(g_new, axis=1), tiny)[:, None]
+            pn = jnp.where(ok[:, None], pn, RADIUS_INIT * fallback)
+            st = dict(st, bm=bm_new, br=br, gk=gk, pn=pn)
         done = jnp.where(first, ~ok_p, st["done"])
-        return dict(st, z=z_new, f=f_new, g=g_new, bm=bm_new, done=done, first=False)
+        return dict(st, z=z_new, f=f_new, g=g_new, done=done, first=False)
 
     def propose(st, go=None):
         """The next trust-region step from ``z``: ``zp``, whether a step length passed, radius."""
@@ -633,7 +795,7 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         if exact:
             p, _, decrement = _trust_region_step(bm, g, radius)
         else:
-            p, _, decrement = _subspace_step(bm, st["hm"], g, radius)
+            p, _, decrement = _subspace_step(bm, st["pn"], g, radius)
         live = ~st["done"] if go is None else ~st["done"] & go
         conv_now = live & (decrement <= settings.tol * jnp.abs(f))
         active = live & ~conv_now
@@ -641,8 +803,7 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         # overrates is shortened in the same iteration instead of costing one.
         gp = jnp.sum(g * p, axis=1)
         pbp = jnp.einsum("bi,bij,bj->b", p, bm, p)
-        trial = z[None] + scales[:, None, None] * jnp.where(active[:, None], p, 0.0)[None]
-        f_s = jax.vmap(lambda zz: values(zz, idx))(trial)  # (S, B)
+        f_s = trial_values(z, p, active, f)  # (S, B)
         pred = -(scales[:, None] * gp + 0.5 * scales[:, None] ** 2 * pbp)
         rho = (f - f_s) / jnp.maximum(pred, tiny)
         ok_s = jnp.isfinite(f_s) & (f_s < f) & (rho > RHO_ACCEPT)
@@ -703,8 +864,16 @@ def _trust_region(fun, z0, free, settings: OptimSettings, exact: bool = True) ->
         first=jnp.asarray(True),
         pending=jnp.asarray(True),
     )
-    if not exact:  # the BFGS model's inverse (`_subspace_step`)
-        state["hm"] = jnp.zeros((b, n, n), dtype)
+    if not exact:  # the BFGS model's learned part, the known part's gradient, the Newton step
+        state.update(br=jnp.zeros((b, n, n), dtype), gk=jnp.zeros_like(z0), pn=jnp.zeros_like(z0))
+        if initial is not None:
+            b0 = initial(z0)
+            b0 = 0.5 * (b0 + jnp.swapaxes(b0, 1, 2))
+            scale = jnp.max(jnp.abs(jnp.diagonal(b0, axis1=1, axis2=2)), axis=1)
+            ok = jnp.all(jnp.isfinite(b0), axis=(1, 2)) & (scale > 0)
+            ridge = jnp.where(free, GN_RIDGE * scale[:, None], 1.0)
+            state["b0"] = jnp.where(pair, b0, 0.0) + ridge[:, :, None] * eye
+            state["b0_ok"] = ok
     if fixed_trip_loops():
         # max_iters proposals take max_iters + 1 passes. A problem that is done changes nothing
         # in a pass (it proposes its own point, which is not accepted), nor does the last pass
@@ -849,7 +1018,8 @@ def compile_optimisation(
         basis, boundary, grid, k, settings.bc_leak, settings.max_free_per_joint,
         settings.search_stride,
     )  # fmt: skip
-    objective = make_objective(dyn, lo, hi, jnp.asarray(settings.limit_penalty, dtype))
+    weight = jnp.asarray(settings.limit_penalty, dtype)
+    objective = make_objective(dyn, lo, hi, weight)
     solver = _SOLVERS[settings.method]
 
     c, j = coeffs_ls.shape[:2]
@@ -869,7 +1039,13 @@ def compile_optimisation(
             prob = jax.tree_util.tree_map(lambda a: a[i], chunk)
             return objective(zf.reshape(j, k), prob)[0]
 
-        return solver(fun, z0, free, settings)
+        if settings.method != "bfgs":
+            return solver(fun, z0, free, settings)
+        known = functools.partial(penalty_model, problems=chunk, lo=lo, hi=hi, weight=weight)
+        initial = None
+        if settings.initial_model == "gauss-newton":
+            initial = functools.partial(gauss_newton_model, dyn, chunk, every=GN_NODE_STRIDE)
+        return solver(fun, z0, free, settings, known=known, initial=initial)
 
     res = optimise_in_chunks(solve, probs, z0, free, settings.max_batch)
 

@@ -39,9 +39,12 @@ BACKENDS = ("rnea", "mjx")
 class Dynamics:
     """A robot's kinematics and inverse dynamics as pure single-sample functions.
 
-    inverse: ``(q (J,), qd (J,), qdd (J,)) -> tau (J,)`` [N m or N], controlled joints only.
+    inverse: ``(q (J,), qd (J,), qdd (J,)) -> tau (J,)`` [N m or N], controlled joints only;
+    each input may also be a sequence of J scalars (`compile_optim.node_states`).
     site_pose: ``q (J,) -> (pos (3,), rot (3, 3))`` of ``robot.site_name``, world frame.
     body_positions: ``q (J,) -> (nbody, 3)`` world body origins (MuJoCo ``xpos``), for key points.
+    form: the RNEA's layout (`dynamics_rnea.make_rnea`), None for MJX. The ``"scalar"`` one
+    reads sequences of scalars as they are; the others stack them first.
     """
 
     robot: Robot
@@ -50,6 +53,7 @@ class Dynamics:
     inverse: Callable
     site_pose: Callable
     body_positions: Callable
+    form: str | None = None
 
 
 def make_dynamics(
@@ -70,8 +74,9 @@ def make_dynamics(
     if jax.dtypes.canonicalize_dtype(dtype) != dtype:
         raise UserError("dtype: float64 needs jax x64 enabled (jax.enable_x64(True))")
     if backend == "rnea":
-        from evojax_motion.dynamics_rnea import make_rnea
+        from evojax_motion.dynamics_rnea import default_form, make_rnea
 
+        form = default_form() if form is None else form
         fns = make_rnea(robot, dtype, form)
     else:  # lazily: importing mujoco.mjx is slow and noisy
         from evojax_motion.dynamics_mjx import make_mjx
@@ -84,6 +89,7 @@ def make_dynamics(
         inverse=fns.inverse,
         site_pose=fns.site_pose,
         body_positions=fns.body_positions,
+        form=form if backend == "rnea" else None,
     )
 
 

@@ -67,7 +67,9 @@ def make_mjx(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
         return data
 
     def inverse(q, qd, qdd):
-        """q, qd, qdd: (J,) -> tau (J,), MJX qfrc_inverse of the controlled dofs."""
+        """q, qd, qdd: (J,) (or sequences of J scalars) -> tau (J,), MJX qfrc_inverse of the
+        controlled dofs."""
+        q, qd, qdd = (jnp.asarray(x) for x in (q, qd, qdd))
         # MJX forms M and its products with matmuls: keep them out of TF32 on GPUs.
         with jax.default_matmul_precision("highest"):
             data = mjx.inverse(model, with_state(q, qd, qdd))

@@ -331,8 +331,12 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> 
     )
 
     def inverse(q, qd, qdd):
-        """q, qd, qdd: (J,) -> tau (J,) = M qdd + C qd + g (+ armature, damping, stiffness)."""
-        q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
+        """q, qd, qdd: (J,) or sequences of J scalars -> tau (J,) = M qdd + C qd + g (+ armature,
+        damping, stiffness). The scalar form reads sequences as they are (no stack)."""
+        if form == "scalar" and not passive and isinstance(q, (list, tuple)):
+            q, qd, qdd = ([jnp.asarray(e, dtype) for e in x] for x in (q, qd, qdd))
+        else:
+            q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
         tau = rigid(q, qd, qdd)
         if passive:
             tau = tau + armature * qdd + damping * qd + stiffness * (q - qpos_spring)

@@ -19,13 +19,18 @@ from evojax_motion.compile_optim import (
     DEFAULT_ITERS,
     OptimSettings,
     _bfgs_update,
+    _cholesky_solve,
     _eigh_2x2,
     _Result,
     _subspace_step,
     cpu_fast_path,
+    gauss_newton_model,
+    joint_lists,
+    limit_penalty,
     make_objective,
     make_optimisation_compiler,
     optimise_in_chunks,
+    penalty_model,
     problem_trajectory,
     reduced_problems,
     search_nodes,
@@ -72,6 +77,8 @@ TOL_LINALG = 1e-10  # float64: trust-region steps and BFGS updates vs their clos
 # value of the subspace step vs a search over 200,000 angles on the circle (its own error is
 # ~ (2 pi / 200,000)^2, 1e-9)
 TOL_CIRCLE = 1e-7
+TOL_GN = 1e-6  # relative: Gauss-Newton model vs central differences (h = 1e-6, float64)
+TOL_LAYOUT = 1e-5  # relative, float32: objective and gradient, joint lists vs one array
 
 
 def synthetic_demos(robot, dyn, rng):
@@ -127,6 +134,7 @@ def test_settings_validation():
         ("method", "sgd"), ("max_iters", 0), ("learning_rate", 0.0), ("limit_margin", -0.1),
         ("n_starts", 0), ("hessian_every", 0), ("bc_leak", 2.0), ("n_components", 0),
         ("max_free_per_joint", 5), ("search_stride", 0), ("max_batch", 0), ("max_batch", 2.5),
+        ("initial_model", "newton"),
     ]  # fmt: skip
     for field, value in bad:
         with pytest.raises(ValueError, match=f"^{field}: expected"):
@@ -352,7 +360,7 @@ def test_subspace_step_minimises_the_model_on_its_plane(x64):
     assert (lc[:3] < ln[:3]).all()  # else the middle case below is not one
     radius = np.array([1.5 * ln[0], 0.5 * lc[1], 0.5 * (lc[2] + ln[2]), 0.5 * ln[3]])
     p, pred, decrement = (
-        np.asarray(a) for a in _subspace_step(*map(jnp.asarray, (bm, np.linalg.inv(bm), g, radius)))
+        np.asarray(a) for a in _subspace_step(*map(jnp.asarray, (bm, newton, g, radius)))
     )
 
     def model(x, i):
@@ -392,27 +400,39 @@ def test_closed_form_2x2_eigh_matches_numpy(x64):
                                atol=TOL_LINALG)  # fmt: skip
 
 
-def test_bfgs_update_keeps_the_inverse(x64):
-    """`_bfgs_update` with the inverse: where accepted, the model meets the secant condition of
-    its damped pair (``B s = y`` where Powell's damping leaves ``y`` as it is) and the updated
-    inverse is its inverse; elsewhere both stay. One pair has ``s.y < 0``, so is damped."""
+def test_bfgs_update_meets_the_secant_condition(x64):
+    """`_bfgs_update`: where accepted, the model meets the secant condition of its damped pair
+    (``B s = y`` where Powell's damping leaves ``y`` as it is) and stays symmetric; elsewhere it
+    stays. One pair has ``s.y < 0``, so is damped and must keep the model positive definite."""
     rng = np.random.default_rng(2)
     bm, s = _spd_batch(rng, 4, 5), rng.standard_normal((4, 5))
     y = np.einsum("bij,bj->bi", bm, s) + 0.1 * rng.standard_normal((4, 5))
     y[1] = -y[1]
     assert s[1] @ y[1] < 0
     accept = np.array([True, True, False, True])
-    new_b, new_h = (
-        np.asarray(a)
-        for a in _bfgs_update(*map(jnp.asarray, (bm, s, y, accept, np.linalg.inv(bm))))
-    )
-    np.testing.assert_allclose(new_h @ new_b, np.broadcast_to(np.eye(5), (4, 5, 5)),
-                               atol=TOL_LINALG * 1e3)  # fmt: skip
+    new_b = np.asarray(_bfgs_update(*map(jnp.asarray, (bm, s, y, accept))))
     for i in (0, 3):
         np.testing.assert_allclose(new_b[i] @ s[i], y[i], rtol=TOL_LINALG * 1e3)
+    np.testing.assert_allclose(new_b, np.swapaxes(new_b, 1, 2), atol=TOL_LINALG)
     np.testing.assert_allclose(new_b[2], bm[2], rtol=0)
     assert np.linalg.eigvalsh(new_b[1]).min() > 0  # damped: still positive definite
     assert not np.allclose(new_b[1], bm[1])
+
+
+def test_cholesky_solve_matches_numpy(x64):
+    """`_cholesky_solve` (unrolled, elementwise) against ``np.linalg.solve`` on positive definite
+    matrices, one of them ill-conditioned (1e8); an indefinite matrix is flagged, not solved."""
+    rng = np.random.default_rng(4)
+    a, b = _spd_batch(rng, 5, 7), rng.standard_normal((5, 7))
+    a[3] = a[3] @ np.diag(np.logspace(0, 4, 7)) @ a[3].T / 7 + 1e-4 * np.eye(7)
+    a[4] = np.diag([1.0, 2.0, -1.0, 3.0, 1.0, 1.0, 1.0])
+    x, ok = (np.asarray(v) for v in _cholesky_solve(jnp.asarray(a), jnp.asarray(b)))
+    np.testing.assert_array_equal(ok, [True, True, True, True, False])
+    expect = np.linalg.solve(a[:4], b[:4, :, None])[..., 0]
+    cond = np.linalg.cond(a[:4])
+    assert cond.max() > 1e6  # the ill-conditioned case is one
+    err = np.abs(x[:4] - expect).max(axis=1) / np.abs(expect).max(axis=1)
+    assert (err <= TOL_LINALG * cond).all(), err
 
 
 @pytest.mark.parametrize("stride", [1, 3, 5])
@@ -527,3 +547,89 @@ def test_cpu_fast_path_matches_the_default_program(setup):
     assert np.asarray(fast.converged).all() and np.asarray(plain.converged).all()
     np.testing.assert_allclose(np.asarray(fast.cost), np.asarray(plain.cost), rtol=TOL_FAST_PATH)
     np.testing.assert_array_equal(np.asarray(fast.within_limits), np.asarray(plain.within_limits))
+
+
+def _f64_problems(s, n=2, stride=1):
+    """The first ``n`` reduced problems of the setup, and a random z, in float64."""
+    g64 = s["grid"]._replace(
+        **{k: np.asarray(v, np.float64) for k, v in s["grid"]._asdict().items()}
+    )
+    take = jax.tree_util.tree_map(
+        lambda a: jnp.asarray(np.asarray(a[:n], np.float64)), (s["basis"], s["boundary"])
+    )
+    st = OptimSettings()
+    problems = reduced(*take, g64, K, st.bc_leak, st.max_free_per_joint, stride=stride)[0]
+    z = np.random.default_rng(5).normal(0, 0.3, problems.mask.shape) * np.asarray(problems.mask)
+    return problems, jnp.asarray(z)
+
+
+def test_penalty_model_matches_autodiff(setup, x64):
+    """`penalty_model` (closed form, batched) against ``jax.grad`` and ``jax.hessian`` of
+    `limit_penalty` at the nodes, with limits tight enough that samples cross them."""
+    s = setup
+    problems, z = _f64_problems(s)
+    lo, hi = jnp.asarray(s["lower"] + 0.3), jnp.asarray(s["upper"] - 0.3)
+    b, j, f = z.shape
+
+    def penalty(zf, prob):
+        q = prob.node_ls[0] + jnp.einsum("jf,mjf->mj", zf.reshape(j, f), prob.node_dirs[0])
+        return limit_penalty(prob.node_w, q, prob.duration, lo, hi, 1e3)
+
+    zf = z.reshape(b, j * f)
+    g, h = (np.asarray(a) for a in penalty_model(zf, problems, lo, hi, 1e3))
+    g_ref = np.asarray(jax.vmap(jax.grad(penalty))(zf, problems))
+    h_ref = np.asarray(jax.vmap(jax.hessian(penalty))(zf, problems))
+    assert np.abs(h_ref).max() > 0  # the penalty acts
+    np.testing.assert_allclose(g, g_ref, atol=TOL_LINALG * np.abs(g_ref).max())
+    np.testing.assert_allclose(h, h_ref, atol=TOL_LINALG * np.abs(h_ref).max())
+
+
+@pytest.mark.parametrize("every", [1, 2])
+def test_gauss_newton_model_matches_finite_differences(setup, x64, every):
+    """`gauss_newton_model` against ``D sum_m w_m J_m^T J_m`` with ``J_m`` the central-difference
+    Jacobian of the torques at the nodes it uses (every node, or every 2nd with weights scaled
+    to the same total), float64."""
+    s = setup
+    dyn = make_dynamics(s["robot"], "rnea", jnp.float64)
+    problems, z = _f64_problems(s)
+    b, j, f = z.shape
+    got = np.asarray(gauss_newton_model(dyn, problems, z.reshape(b, j * f), every))
+    for c in range(b):
+        prob = jax.tree_util.tree_map(lambda a, c=c: a[c], problems)
+
+        def torques(zf, prob=prob):
+            x = prob.node_ls + jnp.einsum("jf,amjf->amj", zf.reshape(j, f), prob.node_dirs)
+            return np.asarray(jax.vmap(dyn.inverse)(x[0], x[1], x[2]))[::every]  # (M', J)
+
+        zc, h = np.asarray(z[c]).reshape(-1), 1e-6
+        jac = np.stack([(torques(zc + h * e) - torques(zc - h * e)) / (2 * h)
+                        for e in np.eye(j * f)], axis=-1)  # fmt: skip
+        w = np.asarray(prob.node_w)
+        w_sub = w[::every] * w.sum() / w[::every].sum()
+        expect = float(prob.duration) * np.einsum("m,mji,mjk->ik", w_sub, jac, jac)
+        np.testing.assert_allclose(got[c], expect, rtol=TOL_GN, atol=TOL_GN * np.abs(expect).max())
+
+
+@pytest.mark.parametrize("form", ["vector", "scalar"])
+def test_joint_lists_give_the_array_objective(setup, form, monkeypatch):
+    """The CPU's joint-by-joint node states (`node_states`, used with the scalar RNEA layout,
+    which reads them as they are) give the objective and gradient of one array, for both
+    layouts (the vector one stacks the lists)."""
+    s = setup
+    problems, z = _f64_problems(s)
+    problems = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), problems)
+    z = z.astype(jnp.float32)
+    dyn = make_dynamics(s["robot"], "rnea", jnp.float32, form)
+    objective = make_objective(dyn, s["lower"] + 0.3, s["upper"] - 0.3, 1e3)
+    assert joint_lists(dyn) == (form == "scalar")  # the test suite runs on CPU
+
+    def value_grad():  # traced anew: joint_lists is read at trace time
+        return jax.vmap(jax.value_and_grad(lambda zz, p: objective(zz, p)[0]))(z, problems)
+
+    monkeypatch.setattr(optim_module, "joint_lists", lambda d: True)
+    f_lists, g_lists = value_grad()
+    monkeypatch.setattr(optim_module, "joint_lists", lambda d: False)
+    f_array, g_array = value_grad()
+    np.testing.assert_allclose(np.asarray(f_lists), np.asarray(f_array), rtol=TOL_LAYOUT)
+    np.testing.assert_allclose(np.asarray(g_lists), np.asarray(g_array),
+                               atol=TOL_LAYOUT * np.abs(np.asarray(g_array)).max())  # fmt: skip
