@@ -87,9 +87,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Non-finite negative numbers: argparse takes "-inf" for an option (its negative-number test
+# knows digits only) and refused "--start 0 ... -inf" as an unknown argument instead of letting
+# the option's own check name it. A leading space keeps them values; float() ignores it.
+_NEGATIVE_NON_FINITE = {"-inf", "-infinity", "-nan"}
+
+
+def _keep_values(argv: list[str]) -> list[str]:
+    return [f" {a}" if a.lower() in _NEGATIVE_NON_FINITE else a for a in argv]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script. Returns the exit status."""
     try:
+        argv = _keep_values(sys.argv[1:] if argv is None else list(argv))
         args = build_parser().parse_args(argv)
         import jax
 

@@ -570,6 +570,15 @@ def test_fuzzed_command_lines_are_refused(inputs, scratch, case):
     check_refused(argv, names, inputs, scratch)
 
 
+@pytest.mark.parametrize("value", ["-inf", "-Infinity", "-nan"])
+def test_negative_non_finite_values_are_named_by_their_option(inputs, scratch, value):
+    """A found case: argparse took "-inf" for an option ("unrecognized arguments"); the option's
+    own check must name it."""
+    argv = ["generate", "--db", "{D}/good.npz", "--target", *_good_target, "--out",
+            "{S}/traj.csv", "--start", *["0.0"] * 6, value]  # fmt: skip
+    check_refused(argv, ["--start", "start posture"], inputs, scratch)
+
+
 def test_fuzz_covers_at_least_200_cases():
     assert N_CONFIG + N_CLI >= 200
 
