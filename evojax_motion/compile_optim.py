@@ -108,7 +108,8 @@ LAZY_GROUPS = 4
 # BFGS's first model of the torque cost (``initial_model="gauss-newton"``): the Gauss-Newton
 # matrix on every GN_NODE_STRIDE-th search node, plus GN_RIDGE times its largest diagonal entry.
 # Paper configuration, 100 conditions, 2 CPU cores (`benchmarks/changes.md`): strides 1, 2, 3
-# and 5 took 20, 20, 18 and 21.5 iterations (median) and 74, -, 25, - ms per 300 conditions.
+# and 5 took 20, 20, 18 and 21.5 iterations (median); strides 1 and 3 cost 74 and 25 ms per 300
+# conditions.
 GN_NODE_STRIDE = 3
 GN_RIDGE = 1e-4
 INITIAL_MODELS = ("gauss-newton", "identity")
@@ -675,9 +676,10 @@ def _trust_region(
     Without ``exact`` (BFGS) no second derivatives of ``fun`` are taken. ``known(z (B, n)) ->
     (gradient (B, n), Hessian (B, n, n))``, optional, is a cheap part of ``fun`` (the joint-limit
     penalty, `penalty_model`: no dynamics): the model is its exact Hessian at the current point
-    plus a damped-BFGS model of the rest, which
-    starts as a multiple of the identity (a first step of ``RADIUS_INIT`` along -g) and learns
-    from the rest's gradient differences only (a structured quasi-Newton model: Dennis &
+    plus a damped-BFGS model of the rest, which starts as ``initial(z0) -> (B, n, n)`` where
+    given (the Gauss-Newton matrix, `gauss_newton_model`, plus a small ridge) or else as a
+    multiple of the identity (a first step of ``RADIUS_INIT`` along -g), and learns from the
+    rest's gradient differences only (a structured quasi-Newton model: Dennis &
     Schnabel, ch. 11). The penalty's curvature (``limit_penalty`` = 1e4 against torque
     curvatures of ~1) switches on and off as samples cross a limit: a plain BFGS model had to
     relearn it. The model is positive definite; its Newton step (`_cholesky_solve`) and the
