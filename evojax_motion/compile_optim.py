@@ -722,16 +722,23 @@ def _trust_region(
 
     scales = jnp.asarray(STEP_SCALES, dtype)
 
-    def trial_values(z, p, active, f):
+    def acceptable(f_s, f, pred):
+        """Whether trial values ``f_s`` pass against the current ``f`` and the model's predicted
+        decreases ``pred`` (same shape): ``(ok, rho)``, rho the ratio of actual to predicted."""
+        rho = (f - f_s) / jnp.maximum(pred, tiny)
+        return jnp.isfinite(f_s) & (f_s < f) & (rho > RHO_ACCEPT), rho
+
+    def trial_values(z, p, active, f, pred_full):
         """``(S, B)`` objective at ``z + scale * p`` for the `STEP_SCALES`. With ``lazy`` (the CPU
-        loop) the shorter lengths are evaluated only for the problems whose full step fails,
+        loop) the shorter lengths are evaluated only for the problems whose full step fails
+        (`acceptable`, ``pred_full`` its predicted decrease),
         in groups of ``B / LAZY_GROUPS``; the others' are +inf, never used: the longest
         acceptable length is taken, so the iterates are those of evaluating all."""
         steps = scales[:, None, None] * jnp.where(active[:, None], p, 0.0)[None]
         if not lazy:
             return jax.vmap(lambda s: values(z + s, idx))(steps)
         f_full = values(z + steps[0], idx)
-        fail = active & ~(jnp.isfinite(f_full) & (f_full < f))
+        fail = active & ~acceptable(f_full, f, pred_full)[0]
         cap = max(1, b // LAZY_GROUPS)
         order = jnp.nonzero(fail, size=b + cap, fill_value=b)[0]  # b: no problem (dropped)
 
@@ -805,10 +812,9 @@ def _trust_region(
         # overrates is shortened in the same iteration instead of costing one.
         gp = jnp.sum(g * p, axis=1)
         pbp = jnp.einsum("bi,bij,bj->b", p, bm, p)
-        f_s = trial_values(z, p, active, f)  # (S, B)
         pred = -(scales[:, None] * gp + 0.5 * scales[:, None] ** 2 * pbp)
-        rho = (f - f_s) / jnp.maximum(pred, tiny)
-        ok_s = jnp.isfinite(f_s) & (f_s < f) & (rho > RHO_ACCEPT)
+        f_s = trial_values(z, p, active, f, pred[0])  # (S, B)
+        ok_s, rho = acceptable(f_s, f, pred)
         longest = jnp.argmax(ok_s, axis=0)  # index of the longest acceptable length
         accept = active & jnp.any(ok_s, axis=0)
         scale = scales[longest]
