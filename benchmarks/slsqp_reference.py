@@ -38,6 +38,7 @@ from evojax_motion.compile_interp import Boundary
 from evojax_motion.compile_optim import OptimSettings, make_objective, reduced_problems
 from evojax_motion.dynamics import make_dynamics
 from evojax_motion.objective import torque_cost
+from evojax_motion.precision import exact_matmuls
 from evojax_motion.robot import Robot, mj_inverse_torques
 from evojax_motion.timegrid import TimeGrid
 
@@ -162,13 +163,15 @@ class ReferenceSolver:
         upper = robot.upper if upper is None else upper
         self.lo = np.asarray(lower, np.float64) + st.limit_margin
         self.hi = np.asarray(upper, np.float64) - st.limit_margin
-        # The reduced problem is built exactly as the compiler builds it (same dtype and device,
-        # so the same binding BC directions, start and null space), then solved in float64 on
-        # the CPU.
+        # The reduced problem is built as the compiler builds it (same dtype, device and matmul
+        # precision, so the same binding BC directions, start and null space), then solved in
+        # float64 on the CPU.
         self.build = jax.jit(
-            lambda b, bc: reduced_problems(
-                b, bc, grid, st.n_components, st.bc_leak, st.max_free_per_joint
-            )[0]
+            exact_matmuls(
+                lambda b, bc: reduced_problems(
+                    b, bc, grid, st.n_components, st.bc_leak, st.max_free_per_joint
+                )[0]
+            )
         )
         with jax.enable_x64(True), _on_cpu():
             dyn = _dynamics_f64(robot)

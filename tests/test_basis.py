@@ -38,6 +38,21 @@ TOL_GRAM_SVD = 1e-4  # relative: Gram-based singular values (squared conditionin
 # itself vs numpy; a Gram-based SVD misses those by O(1) (eps * cond^2).
 TOL_JACOBI_SVD_REL = 1e-3
 TOL_JACOBI_SVD = 2e-6  # relative to s[0]: singular values and the rebuilt matrix (float32)
+# Left singular vectors' deviation from orthonormality on `PAPER_BC_ROWS` (float32): 1.0e-7 with
+# the default sweeps; 2.1e-6 with one sweep fewer (they build the BC solve's binding rows).
+TOL_U_ORTHO = 5e-7
+# The BC rows (q, q at the end, end slopes) of one joint of a paper problem in q-orthonormal
+# coordinates (`compile_interp._joint_system`, leak rule; H100 build, 2026-11-25): graded over
+# four orders with slope rows near `BC_LEAK`; one-sided Jacobi needed 5 sweeps here.
+PAPER_BC_ROWS = np.array(
+    [
+        [9.9150902e-01, 8.6972788e-05, 3.9750159e-07, -1.4079719e-04, -2.4273682e00],
+        [1.0006860e00, -1.3771796e00, -1.4659084e00, 9.1515005e-01, 1.9347692e-01],
+        [-3.0556896e-06, 8.4528880e-04, -8.8380672e-05, 6.2640343e-04, -8.7294471e-04],
+        [-3.2271785e-06, 1.9684207e-04, 1.8224504e-04, 1.3259037e-03, -9.2237513e-04],
+    ],
+    np.float32,
+)
 
 N, T, J, K, C = 40, 20, 3, 4, 6
 
@@ -256,6 +271,15 @@ def test_jacobi_svd_matches_numpy(shape):
     rebuilt = np.einsum("bik,bk,bkj->bij", u, s, vt[:, :k])
     err = np.abs(rebuilt - a).max(axis=(1, 2)) / s_ref[:, 0]
     assert err.max() < TOL_JACOBI_SVD * n
+
+
+def test_jacobi_svd_converges_on_a_paper_bc_matrix():
+    u, s, vt = (np.asarray(x, np.float64) for x in jax.jit(jacobi_svd)(PAPER_BC_ROWS))
+    a = PAPER_BC_ROWS.astype(np.float64)
+    s_ref = np.linalg.svd(a, compute_uv=False)
+    np.testing.assert_allclose(s / s_ref[0], s_ref / s_ref[0], atol=TOL_JACOBI_SVD)
+    assert np.abs(u.T @ u - np.eye(4)).max() < TOL_U_ORTHO
+    assert np.abs((u * s) @ vt[:4] - a).max() / s_ref[0] < TOL_JACOBI_SVD
 
 
 @pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "jacobi"])
