@@ -162,7 +162,9 @@ class OptimSettings:
     - ``initial_model``: BFGS only, its first model of the torque cost: ``"gauss-newton"``
       (`gauss_newton_model`: forward-mode Jacobians on a third of the nodes, ~3 optimiser
       passes' cost; paper configuration: 18 iterations median instead of 36, and p95 gap to
-      SLSQP 1.1 % instead of 3.1 %) or ``"identity"`` (a multiple of it, no derivatives).
+      SLSQP 1.1 % instead of 3.1 %, on the float32-rounded problems before
+      `compile_interp.end_slopes`; 22 iterations median since) or ``"identity"`` (a multiple of
+      it, no derivatives).
     """
 
     n_components: int = 4
