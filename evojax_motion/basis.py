@@ -308,7 +308,9 @@ JACOBI_SWEEPS = 6
 # One-sided Jacobi (`jacobi_svd`) up to n = 6: one sweep more. On the paper's BC solves (100
 # conditions x 7 joints, T = 100, K = 4; `scratch` comparison with a float64 solve, 2026-11-25)
 # 4 sweeps left start trajectories up to 8.4e-3 rad off the float64 ones, 5 as close as LAPACK
-# (1.5e-4 rad): the binding rows in prior units have columns orders of magnitude apart.
+# (1.5e-4 rad): the BC rows in q-orthonormal coordinates are graded over four orders (the slope
+# rows near `BC_LEAK`), and after 4 sweeps their left singular vectors were orthonormal only to
+# 2.1e-6 (`tests/test_basis.py`, ``PAPER_BC_ROWS``).
 JACOBI_SVD_SWEEPS_SMALL = 5
 
 

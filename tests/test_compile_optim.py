@@ -665,7 +665,10 @@ def test_paper_problems_built_in_float32_match_float64(monkeypatch):
         return jax.tree_util.tree_map(np.asarray, fn(b, bc))
 
     with jax.enable_x64(True):
-        f64 = functools.partial(jax.tree_util.tree_map, lambda a: np.asarray(a, np.float64))
+        f64 = functools.partial(
+            jax.tree_util.tree_map,
+            lambda a: np.asarray(a, np.float64) if np.asarray(a).dtype.kind == "f" else a,
+        )
         g64 = grid._replace(**f64(grid._asdict()))
         ref = problems(f64(basis), f64(boundary), g64)
     lapack = problems(basis, boundary, grid)
