@@ -160,16 +160,18 @@ def _svd(a, jacobi: bool):
     return jnp.linalg.svd(a, full_matrices=True)
 
 
-def _pinv(a, rtol, ref, jacobi: bool = False):
-    """``r -> a^+ r`` with singular values below ``rtol * ref`` dropped; also the kept count.
+def _pinv(a, rtol, ref=None, jacobi: bool = False, svd=None):
+    """``r -> a^+ r`` with singular values below ``rtol * ref`` dropped (``ref`` None: the largest
+    of ``a``'s own, its 2-norm); also the kept count.
 
-    ``jacobi``: by `basis.gram_svd`; else `basis.small_svd` (LAPACK on CPU)."""
-    if jacobi:
-        u, sv, vt = gram_svd(a)
-        vt = vt[: sv.shape[0]]
-    else:
-        u, sv, vt = small_svd(a, full_matrices=False)
-    keep = sv > rtol * ref
+    ``svd``: ``a``'s SVD where the caller has it (`_svd`'s); else by `basis.gram_svd` with
+    ``jacobi``, or `basis.small_svd` (LAPACK on CPU)."""
+    if svd is None:
+        svd = gram_svd(a) if jacobi else small_svd(a, full_matrices=False)
+    u, sv, vt = svd
+    k = sv.shape[0]
+    u, vt = u[:, :k], vt[:k]
+    keep = sv > rtol * (sv[0] if ref is None else ref)
     inv = jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0)
     return (lambda r: vt.T @ (inv * (u.T @ r))), jnp.sum(keep).astype(jnp.int32)
 
@@ -218,8 +220,8 @@ def _joint_system(
         # least squares): a degenerate velocity row then costs nothing in the end postures. Where
         # all four rows are solvable this is the plain pseudo-inverse solution.
         ap, av = a[:2], a[2:]
-        _, sp, vpt = _svd(ap, jacobi)  # vpt: (K+1, K+1)
-        pos_solve, rank_p = _pinv(ap, rank_rtol, sp[0], jacobi)
+        up, sp, vpt = _svd(ap, jacobi)  # vpt: (K+1, K+1)
+        pos_solve, rank_p = _pinv(ap, rank_rtol, svd=(up, sp, vpt))
         # Null space of the position rows; the constant's column gives rank >= 1 (static K).
         pos_null = jnp.where((jnp.arange(1, n) >= rank_p)[None, :], vpt[1:].T, 0.0)  # (K+1, K)
         av_null = av @ pos_null
@@ -249,7 +251,7 @@ def _joint_system(
         rank = jnp.sum(binding).astype(jnp.int32)
         m = sq.shape[0]
         proj = jnp.where(binding[:, None], u[:, :m].T, 0.0)  # the binding combinations of rows
-        solve_bound, _ = _pinv(proj @ a, STRICT_RANK_RTOL, jnp.linalg.norm(proj @ a, 2))
+        solve_bound, _ = _pinv(proj @ a, STRICT_RANK_RTOL)
 
         def solve(r):
             return solve_bound(proj @ r)
