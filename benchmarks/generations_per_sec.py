@@ -45,7 +45,6 @@ from pathlib import Path
 import jax
 import numpy as np
 
-jax.config.update("jax_default_matmul_precision", "highest")  # no TF32 on GPUs (see timegrid)
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -137,13 +136,15 @@ def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
 
 
 def generation1_problems(cfg, robot, dyn, db, conds, n: int):
-    """Bases and boundaries of the first ``n`` conditions at generation 1 (the initial database)."""
+    """Bases and boundaries of the first ``n`` conditions at generation 1 (the initial database;
+    full-precision products on GPUs whatever the caller's default)."""
     grid = make_time_grid(db.q.shape[1])
     b = cfg.basis
-    nb = select_neighbours(
-        db.condition, db.valid, conds.target[:n], b.neighbours, b.radius, b.w_pos
-    )
-    basis = pca_basis(db.q, db.duration, nb, cfg.compiler.n_components)
+    with jax.default_matmul_precision("highest"):
+        nb = select_neighbours(
+            db.condition, db.valid, conds.target[:n], b.neighbours, b.radius, b.w_pos
+        )
+        basis = pca_basis(db.q, db.duration, nb, cfg.compiler.n_components)
     boundary = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], conds.boundary)
     return grid, jax.tree_util.tree_map(np.asarray, basis), boundary
 
@@ -371,6 +372,9 @@ def markdown(result: dict) -> str:
 
 
 def main(argv=None) -> None:
+    # No TF32 on GPUs for anything traced outside the package's entry points (`precision`); set
+    # here, not on import, so that importing `build` changes no caller's configuration.
+    jax.config.update("jax_default_matmul_precision", "highest")
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--config", default=str(ROOT / "configs" / "catch_ball.yaml"))
     p.add_argument("--conditions", type=int, default=300, help="paper scale: 300")
