@@ -136,15 +136,14 @@ def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
 
 
 def generation1_problems(cfg, robot, dyn, db, conds, n: int):
-    """Bases and boundaries of the first ``n`` conditions at generation 1 (the initial database;
-    full-precision products on GPUs whatever the caller's default)."""
+    """Bases and boundaries of the first ``n`` conditions at generation 1 (the initial database).
+    Their products are full precision whatever the caller's default (`basis` sets it on each)."""
     grid = make_time_grid(db.q.shape[1])
     b = cfg.basis
-    with jax.default_matmul_precision("highest"):
-        nb = select_neighbours(
-            db.condition, db.valid, conds.target[:n], b.neighbours, b.radius, b.w_pos
-        )
-        basis = pca_basis(db.q, db.duration, nb, cfg.compiler.n_components)
+    nb = select_neighbours(
+        db.condition, db.valid, conds.target[:n], b.neighbours, b.radius, b.w_pos
+    )
+    basis = pca_basis(db.q, db.duration, nb, cfg.compiler.n_components)
     boundary = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], conds.boundary)
     return grid, jax.tree_util.tree_map(np.asarray, basis), boundary
 

@@ -132,7 +132,7 @@ class Basis(NamedTuple):
 
 def rotation_distance(rot_a: jnp.ndarray, rot_b: jnp.ndarray) -> jnp.ndarray:
     """``||R_a^T R_b - I||_F`` for ``rot_a (..., 3, 3)``, ``rot_b (..., 3, 3)`` -> ``(...)``."""
-    rel = jnp.einsum("...ji,...jk->...ik", rot_a, rot_b)
+    rel = jnp.einsum("...ji,...jk->...ik", rot_a, rot_b, precision=jax.lax.Precision.HIGHEST)
     return jnp.linalg.norm(rel - jnp.eye(3, dtype=rel.dtype), axis=(-2, -1))
 
 

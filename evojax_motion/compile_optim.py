@@ -710,6 +710,10 @@ def _trust_region(
         ok = jnp.all(jnp.isfinite(h), axis=(1, 2))
         return jnp.where(ok[:, None, None], h, eye)
 
+    def row_norms(v):
+        """``|v_i|`` of ``v (B, n)``, at least ``tiny`` (a divisor)."""
+        return jnp.maximum(jnp.linalg.norm(v, axis=1), tiny)
+
     def known_part(z):
         """Gradient and Hessian of the known part (zero without it), on the free directions."""
         if known is None:
@@ -784,9 +788,9 @@ def _trust_region(
             # restart it as a steepest-descent model scaled to the (shrunk) radius.
             reset = st["active"] & ~accept
             radius = jnp.maximum(st["radius"], tiny)
-            sigma = jnp.maximum(jnp.linalg.norm(rest_old, axis=1), tiny) / radius
+            sigma = row_norms(rest_old) / radius
             updated = jnp.where(reset[:, None, None], sigma[:, None, None] * eye, updated)
-            sigma0 = jnp.maximum(jnp.linalg.norm(rest, axis=1), tiny) / RADIUS_INIT
+            sigma0 = row_norms(rest) / RADIUS_INIT
             start = sigma0[:, None, None] * eye
             if initial is not None:  # the Gauss-Newton model where it is usable
                 start = jnp.where(st["b0_ok"][:, None, None], st["b0"], start)
@@ -794,7 +798,7 @@ def _trust_region(
             bm_new = br + hk
             pn, ok = _cholesky_solve(bm_new, -g_new)
             # Not numerically positive definite (float32): a steepest-descent step instead.
-            fallback = -g_new / jnp.maximum(jnp.linalg.norm(g_new, axis=1), tiny)[:, None]
+            fallback = -g_new / row_norms(g_new)[:, None]
             pn = jnp.where(ok[:, None], pn, RADIUS_INIT * fallback)
             st = dict(st, bm=bm_new, br=br, gk=gk, pn=pn)
         done = jnp.where(first, ~ok_p, st["done"])

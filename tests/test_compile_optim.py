@@ -154,16 +154,7 @@ def test_settings_validation():
 def test_gradient_in_null_space_matches_finite_differences(setup, x64):
     s = setup
     dyn = make_dynamics(s["robot"], "rnea", jnp.float64)
-    g64 = s["grid"]._replace(
-        **{k: np.asarray(v, np.float64) for k, v in s["grid"]._asdict().items()}
-    )
-
-    def f64(tree):
-        return jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a, np.float64)), tree)
-
-    take = jax.tree_util.tree_map(lambda a: a[:2], (s["basis"], s["boundary"]))
-    st = OptimSettings()
-    problems, _, _ = reduced(*f64(take), g64, K, st.bc_leak, st.max_free_per_joint)
+    problems, _ = _f64_problems(s)
     # Tight limits so that the penalty term is active in the gradient too.
     lo, hi = s["lower"] + 0.2, s["upper"] - 0.2
     objective = make_objective(dyn, lo, hi, 1e3)
@@ -560,16 +551,19 @@ def test_cpu_fast_path_matches_the_default_program(setup):
     np.testing.assert_array_equal(np.asarray(fast.within_limits), np.asarray(plain.within_limits))
 
 
+def _f64(tree):
+    """``tree`` with its floating-point leaves (and a `TimeGrid`'s arrays) as float64."""
+    return jax.tree_util.tree_map(
+        lambda a: np.asarray(a, np.float64) if np.asarray(a).dtype.kind == "f" else a, tree
+    )
+
+
 def _f64_problems(s, n=2, stride=1):
     """The first ``n`` reduced problems of the setup, and a random z, in float64."""
-    g64 = s["grid"]._replace(
-        **{k: np.asarray(v, np.float64) for k, v in s["grid"]._asdict().items()}
-    )
-    take = jax.tree_util.tree_map(
-        lambda a: jnp.asarray(np.asarray(a[:n], np.float64)), (s["basis"], s["boundary"])
-    )
+    take = jax.tree_util.tree_map(lambda a: a[:n], (s["basis"], s["boundary"]))
     st = OptimSettings()
-    problems = reduced(*take, g64, K, st.bc_leak, st.max_free_per_joint, stride=stride)[0]
+    g64 = s["grid"]._replace(**_f64(s["grid"]._asdict()))
+    problems = reduced(*_f64(take), g64, K, st.bc_leak, st.max_free_per_joint, stride=stride)[0]
     z = np.random.default_rng(5).normal(0, 0.3, problems.mask.shape) * np.asarray(problems.mask)
     return problems, jnp.asarray(z)
 
@@ -653,24 +647,17 @@ def test_paper_problems_built_in_float32_match_float64(monkeypatch):
     build's problem: the same free directions and start trajectories within `TOL_PAPER_START`."""
     from benchmarks.generations_per_sec import build, generation1_problems
     from evojax_motion.config import load_config
-    from evojax_motion.precision import exact_matmuls
 
     cfg, robot, dyn, db, conds = build(load_config("configs/catch_ball.yaml", []), 100)
     grid, basis, boundary = generation1_problems(cfg, robot, dyn, db, conds, 100)
     st = cfg.compiler
 
-    def problems(b, bc, g):  # traced anew each call: the code path and dtype in force now
-        fn = jax.jit(exact_matmuls(lambda b, bc: reduced_problems(
-            b, bc, g, st.n_components, st.bc_leak, st.max_free_per_joint)[0]))  # fmt: skip
-        return jax.tree_util.tree_map(np.asarray, fn(b, bc))
+    def problems(b, bc, g):  # `reduced` traces anew each call: the code path and dtype in force
+        out = reduced(b, bc, g, st.n_components, st.bc_leak, st.max_free_per_joint)[0]
+        return jax.tree_util.tree_map(np.asarray, out)
 
     with jax.enable_x64(True):
-        f64 = functools.partial(
-            jax.tree_util.tree_map,
-            lambda a: np.asarray(a, np.float64) if np.asarray(a).dtype.kind == "f" else a,
-        )
-        g64 = grid._replace(**f64(grid._asdict()))
-        ref = problems(f64(basis), f64(boundary), g64)
+        ref = problems(*_f64((basis, boundary)), grid._replace(**_f64(grid._asdict())))
     lapack = problems(basis, boundary, grid)
     monkeypatch.setattr(basis_module, "jacobi_backend", lambda: True)
     jacobi = problems(basis, boundary, grid)
