@@ -164,6 +164,8 @@ def optimality_gap(cfg, robot, dyn, db, conds, n: int) -> dict:
         "conditions": n,
         "compared": int(ok.sum()),
         "median_gap": float(np.median(gap[ok])),
+        "p75_gap": float(np.percentile(gap[ok], 75)),
+        "p90_gap": float(np.percentile(gap[ok], 90)),
         "p95_gap": float(np.percentile(gap[ok], 95)),
         "max_gap": float(np.max(gap[ok])),
         "min_gap": float(np.min(gap[ok])),
