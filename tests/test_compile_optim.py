@@ -92,9 +92,10 @@ TOL_PAPER_START = 1e-3
 # same 100 paper problems, 75th and 95th percentiles. Measured in this test (2 CPU cores): 0.0073 %
 # and 1.03 %; when a step that no length passed restarted BFGS's model as a multiple of the
 # identity (the code before 2026-11-25's seventh session): 0.0225 % and 1.49 %. The 75th
-# percentile is the one that tells them apart; the 95th bounds the tail (local minima).
+# percentile is the one that tells them apart; the 95th bounds the tail (local minima; on the
+# benchmark's first 100 of 300 conditions it read 1.76 %, so a draw of problems moves it).
 TOL_PAPER_P75 = 1.5e-4
-TOL_PAPER_P95 = 1.5e-2
+TOL_PAPER_P95 = 2e-2
 
 
 def synthetic_demos(robot, dyn, rng):
