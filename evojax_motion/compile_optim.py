@@ -705,11 +705,14 @@ def _trust_region(
     pair = free[:, :, None] & free[:, None, :]
     lazy = not fixed_trip_loops()
 
-    def model_hessian(z):
-        h = hessian(z, idx)
+    def on_free(h, diagonal):
+        """``h (B, n, n)`` symmetrised on the free directions, plus ``diagonal (B, n)`` there.
+        Masked directions do not move q: unit curvature (and zero gradient) keeps them still."""
         h = 0.5 * (h + jnp.swapaxes(h, 1, 2))
-        # Masked directions do not move q: unit curvature (and zero gradient) keeps them still.
-        h = jnp.where(pair, h, 0.0) + jnp.where(free, 0.0, 1.0)[:, :, None] * eye
+        return jnp.where(pair, h, 0.0) + jnp.where(free, diagonal, 1.0)[:, :, None] * eye
+
+    def model_hessian(z):
+        h = on_free(hessian(z, idx), 0.0)
         ok = jnp.all(jnp.isfinite(h), axis=(1, 2))
         return jnp.where(ok[:, None, None], h, eye)
 
@@ -884,12 +887,9 @@ def _trust_region(
         state.update(br=jnp.zeros((b, n, n), dtype), gk=jnp.zeros_like(z0), pn=jnp.zeros_like(z0))
         if initial is not None:
             b0 = initial(z0)
-            b0 = 0.5 * (b0 + jnp.swapaxes(b0, 1, 2))
             scale = jnp.max(jnp.abs(jnp.diagonal(b0, axis1=1, axis2=2)), axis=1)
-            ok = jnp.all(jnp.isfinite(b0), axis=(1, 2)) & (scale > 0)
-            ridge = jnp.where(free, GN_RIDGE * scale[:, None], 1.0)
-            state["b0"] = jnp.where(pair, b0, 0.0) + ridge[:, :, None] * eye
-            state["b0_ok"] = ok
+            state["b0"] = on_free(b0, GN_RIDGE * scale[:, None])
+            state["b0_ok"] = jnp.all(jnp.isfinite(b0), axis=(1, 2)) & (scale > 0)
     if fixed_trip_loops():
         # max_iters proposals take max_iters + 1 passes. A problem that is done changes nothing
         # in a pass (it proposes its own point, which is not accepted), nor does the last pass
