@@ -10,7 +10,10 @@ generations, then traces ``--traced`` more and summarises the trace (`summarise_
   kernels around them);
 - the kernels that take the most time (name, launches and mean microseconds per launch);
 - host: the named events that take the most time in all (e.g. ``cuGraphLaunch``,
-  ``command_buffer::update``: launching and updating XLA's CUDA graphs).
+  ``command_buffer::update``: launching and updating XLA's CUDA graphs);
+- the kernels' launches and time by the project function they come from (``by_source``: read
+  from the compiled program's HLO, `trace_summary.kernel_sources`), which says where kernels
+  are worth fusing (e.g. the optimiser's algebra against its dynamics).
 
 ``busy_us / span_us`` near 1 says the device is the bound; far below, the host (launching or
 preparing work) leaves the device waiting. The timing runs without the profiler (it costs the
@@ -75,7 +78,8 @@ def main(argv=None) -> dict:
         with tempfile.TemporaryDirectory(prefix="trace_generation-") as tmp:
             with jax.profiler.trace(tmp, create_perfetto_trace=True):
                 run_generations(step, db, conds, 1 + WARM_UP + args.generations, args.traced)
-            trace = summarise_trace(read_trace(Path(tmp)), args.traced)
+            hlo = step.as_text() if hasattr(step, "as_text") else None
+            trace = summarise_trace(read_trace(Path(tmp)), args.traced, hlo)
     median = float(np.median(seconds))
     result = {
         "machine": machine_info(),
@@ -98,6 +102,11 @@ def main(argv=None) -> dict:
             f"{trace['span_us_per_generation'] / 1e3:.2f} ms a generation"
         )
     print(line)
+    for row in (trace or {}).get("by_source", [])[:10]:
+        print(
+            f"  {row['kernels_per_generation']:7.1f} kernels {row['us_per_generation']:9.1f} us"
+            f"  {row['source']}"
+        )
     tag = args.tag or result["machine"]["platform"]
     path = Path(args.out_dir) / f"trace_generation_{tag}.json"
     path.parent.mkdir(parents=True, exist_ok=True)

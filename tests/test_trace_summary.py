@@ -9,7 +9,13 @@ import pytest
 
 # benchmarks/ is not a package of the project; the summary is what trace_generation.py reports.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks.trace_summary import read_trace, summarise_trace
+from benchmarks.trace_summary import (
+    NO_SOURCE,
+    NOT_IN_HLO,
+    kernel_sources,
+    read_trace,
+    summarise_trace,
+)
 
 GPU, HOST = 1, 2
 COMPUTE, COPY, MAIN = 10, 11, 20
@@ -92,3 +98,84 @@ def test_read_trace_reads_the_one_gzipped_trace(tmp_path):
     with gzip.open(folder / "host.trace.json.gz", "wt") as f:
         json.dump({"traceEvents": _trace()}, f)
     assert read_trace(tmp_path) == _trace()
+
+
+# A compiled program's HLO as `as_text()` prints it, cut down: kernel "a" fuses two instructions
+# of `objective` and one of `step`; "b" (deduplicated name of fusion.2) one of a library file
+# called from `solve`; "c" has no frame in the package. Frame 3 (objective) has parent 2
+# (solve), whose parent 1 is outside the package.
+_HLO = """HloModule jit_step
+
+FileNames
+1 "/x/site-packages/jax/_src/lax.py"
+2 "/repo/evojax_motion/compile_optim.py"
+3 "/repo/evojax_motion/evolution.py"
+
+FunctionNames
+1 "add"
+2 "solve"
+3 "objective"
+4 "step"
+
+FileLocations
+1 {file_name_id=1 function_name_id=1 line=5 end_line=5 column=1 end_column=2}
+2 {file_name_id=2 function_name_id=2 line=10 end_line=10 column=1 end_column=2}
+3 {file_name_id=2 function_name_id=3 line=20 end_line=20 column=1 end_column=2}
+4 {file_name_id=3 function_name_id=4 line=30 end_line=30 column=1 end_column=2}
+
+StackFrames
+1 {file_location_id=4 parent_frame_id=1}
+2 {file_location_id=2 parent_frame_id=1}
+3 {file_location_id=3 parent_frame_id=2}
+4 {file_location_id=1 parent_frame_id=2}
+5 {file_location_id=1 parent_frame_id=5}
+
+%fused_a (p: f32[4]) -> f32[4] {
+  %p = f32[4]{0} parameter(0)
+  %m = f32[4]{0} multiply(%p, %p), metadata={op_name="mul" stack_frame_id=3}
+  %s = f32[4]{0} sine(%m), metadata={op_name="sin" stack_frame_id=3}
+  ROOT %n = f32[4]{0} negate(%s), metadata={op_name="neg" stack_frame_id=1}
+}
+
+%fused_b (p: f32[4]) -> f32[4] {
+  %p = f32[4]{0} parameter(0)
+  ROOT %e = f32[4]{0} exponential(%p), metadata={op_name="exp" stack_frame_id=4}
+}
+
+%fused_c (p: f32[4]) -> f32[4] {
+  %p = f32[4]{0} parameter(0)
+  ROOT %e = f32[4]{0} exponential(%p), metadata={op_name="exp" stack_frame_id=5}
+}
+
+ENTRY %main (x: f32[4]) -> f32[4] {
+  %x = f32[4]{0} parameter(0)
+  %loop_a.1 = f32[4]{0} fusion(%x), kind=kLoop, calls=%fused_a, metadata={op_name="a"}
+  %fusion.2 = f32[4]{0} fusion(%loop_a.1), kind=kLoop, calls=%fused_b, metadata={deduplicated_name="b"}
+  ROOT %c = f32[4]{0} fusion(%fusion.2), kind=kLoop, calls=%fused_c
+}
+"""  # noqa: E501
+
+
+def test_kernels_are_traced_to_the_project_function_most_of_their_code_comes_from():
+    assert kernel_sources(_HLO) == {
+        "loop_a_1": "compile_optim:objective",
+        "fusion_2": "compile_optim:solve",
+        "b": "compile_optim:solve",
+        "c": NO_SOURCE,
+    }
+
+
+def test_kernel_time_by_source():
+    kernels = [("loop_a_1", 0, 10), ("b", 10, 4), ("c", 14, 2), ("memcpy", 16, 1)]
+    kernels.append(("loop_a_1", 17, 10))
+    events = [*_meta(), *(_x(GPU, COMPUTE, *k) for k in kernels)]
+    s = summarise_trace(events, generations=2, hlo_text=_HLO)
+    keys = ("source", "kernels_per_generation", "us_per_generation")
+    rows = [tuple(r[k] for k in keys) for r in s["by_source"]]
+    assert rows == [
+        ("compile_optim:objective", 1.0, 10.0),
+        ("compile_optim:solve", 0.5, 2.0),
+        (NO_SOURCE, 0.5, 1.0),
+        (NOT_IN_HLO, 0.5, 0.5),
+    ]
+    assert "by_source" not in summarise_trace(events, generations=2)
