@@ -119,6 +119,7 @@ RHO_ACCEPT, RHO_BAD, RHO_GOOD = 1e-4, 0.25, 0.75  # ratio of actual to predicted
 # Default `OptimSettings.max_batch` (chosen on an H100: docs/scaling.md).
 MAX_BATCH = 4096
 SECULAR_ITERS = 12  # Newton iterations on the trust-region secular equation
+COLUMN_REDUCE_MAX_N = 2  # `_row_reduce`: rows up to this length are summed column by column
 EIG_FLOOR = 1e-6  # eigenvalues below this fraction of the largest count as zero (float32 noise)
 
 
@@ -461,11 +462,15 @@ def penalty_model(z, problems: Problem, lo, hi, weight):
     q = problems.node_ls[:, 0] + jnp.sum(z.reshape(b, 1, j, f) * dirs, axis=-1)  # (B, M, J)
     viol = jnp.maximum(q - hi, 0.0) - jnp.maximum(lo - q, 0.0)
     c = (2.0 * weight * problems.duration)[:, None] * problems.node_w  # (B, M)
-    g = jnp.einsum("bm,bmj,bmjf->bjf", c, viol, dirs, precision=jax.lax.Precision.HIGHEST)
     outside = (viol != 0.0).astype(dirs.dtype)
-    blocks = jnp.einsum(
-        "bm,bmj,bmjf,bmjg->bjfg", c, outside, dirs, dirs, precision=jax.lax.Precision.HIGHEST
-    )
+    if fused_products():  # a reduction over the nodes XLA fuses, not a GEMM kernel of its own
+        g = jnp.sum((c[:, :, None] * viol)[..., None] * dirs, axis=1)
+        weighted = (c[:, :, None] * outside)[..., None] * dirs
+        blocks = jnp.sum(weighted[..., :, None] * dirs[..., None, :], axis=1)
+    else:
+        hi_ = jax.lax.Precision.HIGHEST
+        g = jnp.einsum("bm,bmj,bmjf->bjf", c, viol, dirs, precision=hi_)
+        blocks = jnp.einsum("bm,bmj,bmjf,bmjg->bjfg", c, outside, dirs, dirs, precision=hi_)
     h = jnp.einsum("bjfg,jk->bjfkg", blocks, jnp.eye(j, dtype=dirs.dtype))
     return g.reshape(b, j * f), h.reshape(b, j * f, j * f)
 
@@ -524,47 +529,65 @@ def _trust_region_step(bm, g, radius, eig=None):
     """
     e, v = small_eigh(bm) if eig is None else eig  # ascending
     tiny = jnp.finfo(e.dtype).tiny
-    scale = jnp.max(jnp.abs(e), axis=1, keepdims=True)
+    scale = _row_reduce(jnp.abs(e), jnp.maximum)
     floor = EIG_FLOOR * scale + tiny
-    gv = jnp.einsum("bij,bi->bj", v, g)
+    gv = _matvec(jnp.swapaxes(v, 1, 2), g)  # V^T g
     r = radius[:, None]
     lam_lo = jnp.maximum(-e[:, :1], 0.0) + floor  # (B, 1)
 
     def norm(lam):
-        return jnp.sqrt(jnp.sum((gv / (e + lam)) ** 2, axis=1, keepdims=True))
+        return jnp.sqrt(_row_reduce((gv / (e + lam)) ** 2))
 
     def secular(_, lam):
         psi = jnp.maximum(norm(lam), tiny)
-        dpsi = -jnp.sum(gv**2 / (e + lam) ** 3, axis=1, keepdims=True) / psi
+        dpsi = -_row_reduce(gv**2 / (e + lam) ** 3) / psi
         lam = lam + (1.0 / psi - 1.0 / r) * psi**2 / jnp.minimum(dpsi, -tiny)
         return jnp.maximum(lam, lam_lo)
 
     newton_fits = (e[:, :1] > floor) & (norm(0.0) <= r)
-    # Unrolled: straight-line elementwise code XLA fuses (on GPUs one kernel, not 12 launches).
+    # Unrolled: straight-line elementwise code (for the 2 x 2 subspace model no reductions
+    # either, `_row_reduce`), which XLA fuses instead of launching a kernel per iteration.
     lam = jax.lax.fori_loop(0, SECULAR_ITERS, secular, lam_lo, unroll=True)
     lam = jnp.where(newton_fits, 0.0, lam)
     pv = -gv / (e + lam)
     # Hard case: even at lam_lo the step is shorter than the radius; go on along v_min.
     short = ~newton_fits & (norm(lam) < r)
-    extra = jnp.sqrt(jnp.maximum(r**2 - jnp.sum(pv**2, axis=1, keepdims=True), 0.0))
+    extra = jnp.sqrt(jnp.maximum(r**2 - _row_reduce(pv**2), 0.0))
     sign = jnp.where(gv[:, :1] > 0, -1.0, 1.0)
     pv = pv.at[:, :1].add(jnp.where(short, sign * extra, 0.0))
-    p = jnp.einsum("bij,bj->bi", v, pv)
-    pred = -jnp.sum(gv * pv + 0.5 * e * pv**2, axis=1)
+    p = _matvec(v, pv)
+    pred = -_row_reduce(gv * pv + 0.5 * e * pv**2)[:, 0]
     decrement = jnp.where(
-        e[:, 0] > 0, 0.5 * jnp.sum(gv**2 / jnp.maximum(e, floor), axis=1), jnp.inf
+        e[:, 0] > 0, 0.5 * _row_reduce(gv**2 / jnp.maximum(e, floor))[:, 0], jnp.inf
     )
     return p, pred, decrement
 
 
+def _row_reduce(x, op=jnp.add):
+    """``x (B, n)`` reduced over its rows by ``op`` (`jnp.add` or `jnp.maximum`): ``(B, 1)``.
+
+    Up to ``n = COLUMN_REDUCE_MAX_N`` as ``op`` over the columns, elementwise: XLA fuses that
+    with what comes before and after, where a reduction starts a new GPU kernel (the 2 x 2
+    subspace model's secular iterations ran as 8 kernels an optimiser pass, ~1-2 us each at
+    1,000 conditions on an H100, `benchmarks/changes.md`). Same sums, same order.
+    """
+    n = x.shape[1]
+    if n > COLUMN_REDUCE_MAX_N:
+        return (jnp.sum if op is jnp.add else jnp.max)(x, axis=1, keepdims=True)
+    return functools.reduce(op, [x[:, i : i + 1] for i in range(n)])
+
+
 def _dot_rows(a, b):
     """``sum(a * b, -1)``: row-wise dot products of batched vectors (elementwise, fusable)."""
-    return jnp.sum(a * b, axis=-1)
+    return _row_reduce(a * b)[:, 0]
 
 
 def _matvec(m, x):
     """``m (B, n, n) @ x (B, n)`` as elementwise products and a sum (fused by XLA, no GEMM)."""
-    return jnp.sum(m * x[:, None, :], axis=-1)
+    n = m.shape[-1]
+    if n > COLUMN_REDUCE_MAX_N:
+        return jnp.sum(m * x[:, None, :], axis=-1)
+    return functools.reduce(jnp.add, [m[:, :, i] * x[:, i : i + 1] for i in range(n)])
 
 
 def _bfgs_update(bm, s, y, accept):
