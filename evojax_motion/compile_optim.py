@@ -564,30 +564,29 @@ def _trust_region_step(bm, g, radius, eig=None):
 
 
 def _row_reduce(x, op=jnp.add):
-    """``x (B, n)`` reduced over its rows by ``op`` (`jnp.add` or `jnp.maximum`): ``(B, 1)``.
+    """``x (..., n)`` reduced over its last axis by ``op`` (`jnp.add` or `jnp.maximum`):
+    ``(..., 1)``.
 
     Up to ``n = COLUMN_REDUCE_MAX_N`` as ``op`` over the columns, elementwise: XLA fuses that
     with what comes before and after, where a reduction starts a new GPU kernel (the 2 x 2
-    subspace model's secular iterations ran as 8 kernels an optimiser pass, ~1-2 us each at
-    1,000 conditions on an H100, `benchmarks/changes.md`). Same sums, same order.
+    subspace model's secular iterations: 434 kernels a generation at 1,000 conditions on an H100
+    as reductions, 186 this way; `benchmarks/changes.md`, eighth session).
     """
-    n = x.shape[1]
+    n = x.shape[-1]
     if n > COLUMN_REDUCE_MAX_N:
-        return (jnp.sum if op is jnp.add else jnp.max)(x, axis=1, keepdims=True)
-    return functools.reduce(op, [x[:, i : i + 1] for i in range(n)])
+        whole = {jnp.add: jnp.sum, jnp.maximum: jnp.max}[op]
+        return whole(x, axis=-1, keepdims=True)
+    return functools.reduce(op, [x[..., i : i + 1] for i in range(n)])
 
 
 def _dot_rows(a, b):
     """``sum(a * b, -1)``: row-wise dot products of batched vectors (elementwise, fusable)."""
-    return _row_reduce(a * b)[:, 0]
+    return _row_reduce(a * b)[..., 0]
 
 
 def _matvec(m, x):
     """``m (B, n, n) @ x (B, n)`` as elementwise products and a sum (fused by XLA, no GEMM)."""
-    n = m.shape[-1]
-    if n > COLUMN_REDUCE_MAX_N:
-        return jnp.sum(m * x[:, None, :], axis=-1)
-    return functools.reduce(jnp.add, [m[:, :, i] * x[:, i : i + 1] for i in range(n)])
+    return _row_reduce(m * x[:, None, :])[..., 0]
 
 
 def _bfgs_update(bm, s, y, accept):
