@@ -140,6 +140,9 @@ def optimality_section() -> list[str]:
     return out or [*out, "Not measured yet.", ""]
 
 
+BY_SOURCE_ROWS = 8  # functions listed per trace
+
+
 def trace_section() -> list[str]:
     out = ["## Where a generation's device time goes (`benchmarks/trace_generation.py`)", ""]
     found = _load("trace_generation_*.json")
@@ -178,6 +181,23 @@ def trace_section() -> list[str]:
             f"\n{path.name}: {_machine(m)}. Command: `{m.get('command', '?')}`. "
             f"XLA_FLAGS: {('`' + m['xla_flags'] + '`') if m.get('xla_flags') else 'none'}"
         )
+    for path, d in found:
+        t = d.get("trace") or {}
+        if "by_source" not in t:
+            continue
+        busy = t["busy_us_per_generation"]
+        out += [
+            f"\n{path.name}, the device's kernels by the project function they come from "
+            f"(`by_source`, the {BY_SOURCE_ROWS} largest):",
+            "",
+            "| function | kernels / generation | us / generation | share of busy |",
+            "|---|---:|---:|---:|",
+        ]
+        out += [
+            f"| `{r['source']}` | {r['kernels_per_generation']:g} | {r['us_per_generation']:.1f} "
+            f"| {r['us_per_generation'] / busy:.0%} |"
+            for r in t["by_source"][:BY_SOURCE_ROWS]
+        ]
     return [*out, ""] if found else [*out, "Not measured yet.", ""]
 
 
