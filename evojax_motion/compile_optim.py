@@ -468,9 +468,9 @@ def penalty_model(z, problems: Problem, lo, hi, weight):
         weighted = (c[:, :, None] * outside)[..., None] * dirs
         blocks = jnp.sum(weighted[..., :, None] * dirs[..., None, :], axis=1)
     else:
-        hi_ = jax.lax.Precision.HIGHEST
-        g = jnp.einsum("bm,bmj,bmjf->bjf", c, viol, dirs, precision=hi_)
-        blocks = jnp.einsum("bm,bmj,bmjf,bmjg->bjfg", c, outside, dirs, dirs, precision=hi_)
+        exact = jax.lax.Precision.HIGHEST
+        g = jnp.einsum("bm,bmj,bmjf->bjf", c, viol, dirs, precision=exact)
+        blocks = jnp.einsum("bm,bmj,bmjf,bmjg->bjfg", c, outside, dirs, dirs, precision=exact)
     h = jnp.einsum("bjfg,jk->bjfkg", blocks, jnp.eye(j, dtype=dirs.dtype))
     return g.reshape(b, j * f), h.reshape(b, j * f, j * f)
 
