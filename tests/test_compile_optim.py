@@ -90,8 +90,9 @@ TOL_LAYOUT = 1e-5  # relative, float32: objective and gradient, joint lists vs o
 TOL_PAPER_START = 1e-3
 # Relative gap to float64 SLSQP of the catching config's compiler (BFGS, 30 iterations) on the
 # same 100 paper problems, 75th and 95th percentiles. Measured in this test (2 CPU cores): 0.0073 %
-# and 1.03 % (0.0074 % and 1.07 % since the eighth session's regrouped sums); when a step that no length passed restarted BFGS's model as a multiple of the
-# identity (the code before 2026-11-25's seventh session): 0.0225 % and 1.49 %. The 75th
+# and 1.03 % (0.0074 % and 1.07 % since the eighth session's regrouped sums); when a step that
+# no length passed restarted BFGS's model as a multiple of the identity (the code before
+# 2026-11-25's seventh session): 0.0225 % and 1.49 %. The 75th
 # percentile is the one that tells them apart; the 95th bounds the tail (local minima; on the
 # benchmark's first 100 of 300 conditions it read 1.76 %, so a draw of problems moves it).
 TOL_PAPER_P75 = 1.5e-4
