@@ -506,12 +506,9 @@ def make_objective(dyn: Dynamics, lo, hi, weight):
     def objective(z, problem: Problem):
         lists = joint_lists(dyn)
         q, qd, qdd = node_states(z, problem, lists)
-        if lists and dyn.torques is not None:  # unstacked (`Dynamics.torques`)
-            squares = sum(t * t for t in jax.vmap(dyn.torques)(q, qd, qdd))
-        else:
-            squares = jnp.sum(jax.vmap(dyn.inverse)(q, qd, qdd) ** 2, -1)
-        w = problem.node_w.astype(squares.dtype)
-        cost = 0.5 * problem.duration * jnp.sum(w * squares)
+        tau = jax.vmap(dyn.inverse)(q, qd, qdd)
+        w = problem.node_w.astype(tau.dtype)
+        cost = 0.5 * problem.duration * jnp.sum(w * jnp.sum(tau**2, -1))
         q_nodes = jnp.stack(q, axis=-1) if lists else q
         return cost + limit_penalty(w, q_nodes, problem.duration, lo, hi, weight), cost
 
@@ -1134,14 +1131,12 @@ def cpu_fast_path(dyn: Dynamics, settings: OptimSettings) -> tuple[Dynamics, dic
     For BFGS: `dynamics.unfused_cpu_program` (on CPU with the RNEA backend, the scalar RNEA layout
     compiled with XLA's CPU fusion emitters off, for this program only): BFGS runs on value and
     gradient evaluations, which that layout roughly doubles on CPU (`BENCHMARKS.md`, dynamics
-    throughput with and without fusion emitters), plus XLA's multi-output fusion and the
-    objective on unstacked torques (`Dynamics.torques`, `xla_fusion`) in the CPU's loop (not
-    with `fixed_trip_loops`, the accelerators' loop, whose program compiled for over 10 minutes
-    with that pass on a CPU). Not for Newton: in our trials its Hessian compiled several times
-    slower that way, for a small gain in run time. Elsewhere ``(dyn, None)``: unchanged.
+    throughput with and without fusion emitters). Not for Newton: in our trials its Hessian
+    compiled several times slower that way, for a small gain in run time. Elsewhere
+    ``(dyn, None)``: unchanged.
     """
     if settings.resolved().method == "bfgs":
-        return unfused_cpu_program(dyn, torques=not fixed_trip_loops())
+        return unfused_cpu_program(dyn)
     return dyn, None
 
 

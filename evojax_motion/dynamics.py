@@ -45,11 +45,6 @@ class Dynamics:
     body_positions: ``q (J,) -> (nbody, 3)`` world body origins (MuJoCo ``xpos``), for key points.
     form: the RNEA's layout (`dynamics_rnea.make_rnea`), None for MJX. The ``"scalar"`` one
     reads sequences of scalars as they are; the others stack them first.
-    torques: None, or (`unfused_cpu_program` with ``torques=True``) ``inverse`` for sequences
-    of J scalars unstacked, a tuple of J torques: for programs compiled with XLA:CPU's
-    multi-output fusion (`xla_fusion`), where a sum of their squares computes the shared
-    recursion once; stacked, XLA emits it once per joint (the paper-scale batch's value 2.4
-    against 3.8 ms on 2 CPU cores; `benchmarks/changes.md`, ninth session).
     """
 
     robot: Robot
@@ -59,20 +54,14 @@ class Dynamics:
     site_pose: Callable
     body_positions: Callable
     form: str | None = None
-    torques: Callable | None = None
 
 
 def make_dynamics(
-    robot: Robot,
-    backend: str = "rnea",
-    dtype: Any = jnp.float32,
-    form: str | None = None,
-    torques: bool = False,
+    robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32, form: str | None = None
 ) -> Dynamics:
     """Build the `Dynamics` of `robot` with `backend` in `BACKENDS`, computing in `dtype`.
 
     ``form``: RNEA only, its layout (`dynamics_rnea.make_rnea`; None: the default JAX backend's).
-    ``torques``: the scalar RNEA only, also set `Dynamics.torques` (see there when to).
 
     float64 needs jax x64 enabled both here and where the functions are traced
     (``jax.enable_x64(True)`` context or the ``jax_enable_x64`` flag).
@@ -101,26 +90,20 @@ def make_dynamics(
         site_pose=fns.site_pose,
         body_positions=fns.body_positions,
         form=form if backend == "rnea" else None,
-        torques=fns.torques if torques and backend == "rnea" else None,
     )
 
 
-def unfused_cpu_program(dyn: Dynamics, torques: bool = False) -> tuple[Dynamics, dict | None]:
+def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
     """``(dynamics, jit compiler_options)`` for a jitted program that evaluates ``dyn`` many times.
 
     On the CPU backend with RNEA: the scalar layout, compiled with XLA's CPU fusion emitters off
     for that program only (`dynamics_rnea.UNFUSED_CPU_OPTIONS`), where it runs about twice as
     fast as the default vector layout (`BENCHMARKS.md`, dynamics throughput). Every function of
     the returned ``dyn`` must be traced only into programs compiled with those options: under the
-    default CPU options the scalar layout's gradients are far slower. With ``torques``, also
-    XLA's multi-output fusion where it is available (`xla_fusion.options`), and then the
-    returned ``dyn`` has `Dynamics.torques`. Elsewhere ``(dyn, None)``.
+    default CPU options the scalar layout's gradients are far slower. Elsewhere ``(dyn, None)``.
     """
     if jax.default_backend() == "cpu" and dyn.backend == "rnea":
-        from evojax_motion import xla_fusion
         from evojax_motion.dynamics_rnea import UNFUSED_CPU_OPTIONS
 
-        fusion = xla_fusion.options() if torques else {}
-        scalar = make_dynamics(dyn.robot, "rnea", dyn.dtype, "scalar", torques=bool(fusion))
-        return scalar, {**UNFUSED_CPU_OPTIONS, **fusion}
+        return make_dynamics(dyn.robot, "rnea", dyn.dtype, "scalar"), dict(UNFUSED_CPU_OPTIONS)
     return dyn, None

@@ -66,8 +66,6 @@ class BackendFunctions(NamedTuple):
     inverse: Callable  # (q (J,), qd (J,), qdd (J,)) -> tau (J,)
     site_pose: Callable  # q (J,) -> (pos (3,), rot (3, 3))
     body_positions: Callable  # q (J,) -> (nbody, 3), world body origins (xpos)
-    # the scalar form only: (q, qd, qdd) as sequences of J scalars -> tuple of J torques
-    torques: Callable | None = None
 
 
 # -- compile time (numpy, float64) ------------------------------------------------------------
@@ -320,7 +318,7 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> 
         @ _transform(_quat_mat(m.site_quat[site_id]), m.site_pos[site_id]),
     )
     build = _vector_functions if form == "vector" else _scalar_functions
-    rigid, site_pose, body_positions, rigid_terms = build(tree, gravity, site, np.dtype(dtype))
+    rigid, site_pose, body_positions = build(tree, gravity, site, np.dtype(dtype))
 
     # Joint-space terms of qfrc_inverse: armature (in M) and minus the passive forces.
     dof_adr, qpos_adr = m.jnt_dofadr[joint_ids], m.jnt_qposadr[joint_ids]
@@ -344,24 +342,7 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> 
             tau = tau + armature * qdd + damping * qd + stiffness * (q - qpos_spring)
         return tau
 
-    def torques(q, qd, qdd):
-        """The scalar form's ``inverse`` for sequences of J scalars, unstacked: a tuple of J
-        torques (`dynamics.Dynamics.torques` says when that is faster)."""
-        q, qd, qdd = ([jnp.asarray(e, dtype) for e in x] for x in (q, qd, qdd))
-        terms = rigid_terms(q, qd, qdd)
-        if not passive:
-            return terms
-        return tuple(
-            t + armature[j] * qdd[j] + damping[j] * qd[j] + stiffness[j] * (q[j] - qpos_spring[j])
-            for j, t in enumerate(terms)
-        )
-
-    return BackendFunctions(
-        inverse=inverse,
-        site_pose=site_pose,
-        body_positions=body_positions,
-        torques=torques if form == "scalar" else None,
-    )
+    return BackendFunctions(inverse=inverse, site_pose=site_pose, body_positions=body_positions)
 
 
 class _Site(NamedTuple):
@@ -370,7 +351,7 @@ class _Site(NamedTuple):
 
 
 def _vector_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.dtype):
-    """The "vector" form: (rigid-body inverse, site_pose, body_positions, None)."""
+    """The "vector" form: (rigid-body inverse, site_pose, body_positions)."""
     n = len(tree.order)
 
     def c(x):  # constants are numpy arrays of `dtype`, folded into the graph
@@ -449,12 +430,11 @@ def _vector_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
         w = kinematics(q)[body_seg]
         return jnp.asarray(fixed_xpos).at[moving].set(_mv(w[:, :, :3], body_org) + w[:, :, 3])
 
-    return rigid, site_pose, body_positions, None
+    return rigid, site_pose, body_positions
 
 
 def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.dtype):
-    """The "scalar" form: (rigid-body inverse, site_pose, body_positions, per-joint torques as a
-    tuple, which the inverse stacks).
+    """The "scalar" form: (rigid-body inverse, site_pose, body_positions).
 
     Same algorithm as `_vector_functions`, recursing over parents instead of using the ancestor
     matrix, on tuples of scalars: constants are Python floats (weakly typed, so they take the
@@ -492,7 +472,7 @@ def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
             frames.append((rot, org))
         return frames
 
-    def rigid_terms(q, qd, qdd):
+    def rigid(q, qd, qdd):
         frames = frames_of(q)
         qd, qdd = list(qd), list(qdd)
         motion, vel, acc, wrench = [], [], [], []
@@ -533,7 +513,7 @@ def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
             if p >= 0:
                 pf, pm = wrench[p]
                 wrench[p] = (_s_vadd(pf, force), _s_vadd(pm, moment))
-        return tuple(jnp.asarray(t, dtype) for t in tau)
+        return jnp.stack([jnp.asarray(t, dtype) for t in tau])
 
     def as_array(x):
         if isinstance(x, tuple):
@@ -565,12 +545,7 @@ def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
     # Thousands of scalar operations: traced once per program and argument dtype, not at
     # every call site (the optimiser's value, gradient and torque evaluations), then transformed
     # as one jaxpr by vmap and autodiff. XLA inlines the call; the compiled program is the same.
-    rigid_terms = jax.jit(rigid_terms)
-
-    def rigid(q, qd, qdd):
-        return jnp.stack(rigid_terms(q, qd, qdd))
-
-    return rigid, site_pose, body_positions, rigid_terms
+    return jax.jit(rigid), site_pose, body_positions
 
 
 # -- scalar algebra for the "scalar" form: Python floats (model constants) and traced scalars --
