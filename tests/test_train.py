@@ -132,6 +132,24 @@ def test_check_run_dir_refusals(tmp_path):
         check_run_dir(tmp_path / "junk" / "x", cfg, resume=False)
 
 
+def test_compile_wait_counts_the_early_compile_still_running():
+    """``compile_seconds`` of a run's summary counts the wait for the step compiled in the
+    background (`train.wait_for_step`): a compile that ends 0.3 s after the demonstrations and
+    conditions is 0.3 s not hidden (the ninth session's figures read 0.0 s there)."""
+    import time
+
+    from evojax_motion.train import wait_for_step
+
+    class Early:
+        def step(self):
+            time.sleep(0.3)
+            return "compiled"
+
+    step, waited = wait_for_step(Early())
+    assert step == "compiled" and 0.3 <= waited < 5.0
+    assert wait_for_step(None) == (None, 0.0)
+
+
 # ------------------------------------------------------------------- the tiny run, end to end
 
 TOL_COST_REL = 0.01  # stored eq. 5 costs vs C MuJoCo mj_inverse (float32 JAX vs float64 C)
