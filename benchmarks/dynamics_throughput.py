@@ -25,6 +25,7 @@ without, with different tags, to compare.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -132,6 +133,16 @@ def bench_backend(robot, backend: str, states, ref_tau, repeats: int) -> dict:
     return out
 
 
+def cpu_model() -> str:
+    """The CPU's model name (Linux: ``/proc/cpuinfo``), else `platform.processor`: timings on
+    CPUs of the same core count differ by model (`benchmarks/changes.md`, ninth session)."""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
 def machine_info() -> dict:
     dev = jax.devices()[0]
     return {
@@ -141,6 +152,7 @@ def machine_info() -> dict:
         "cpu_count": os.cpu_count(),
         "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "processor": platform.processor() or platform.machine(),
+        "cpu_model": cpu_model(),
         "python": platform.python_version(),
         "jax": jax.__version__,
         "mujoco": mujoco.__version__,

@@ -18,10 +18,16 @@ def _load(pattern: str) -> list[tuple[Path, dict]]:
     return [(p, json.loads(p.read_text())) for p in sorted(RESULTS.glob(pattern))]
 
 
+def cpu_label(machine: dict) -> str:
+    """``"2 CPUs, AMD EPYC"`` from a benchmark's ``machine`` record (`dynamics_throughput.
+    machine_info`; the CPU model where it was recorded)."""
+    model = machine.get("cpu_model")
+    return f"{machine.get('cpu_count', '?')} CPUs" + (f", {model}" if model else "")
+
+
 def _machine(m: dict) -> str:
     kind = m.get("device_kind") or ", ".join(m.get("devices", [])) or m.get("platform", "?")
-    cpus = m.get("cpu_count")
-    extra = f", {cpus} CPUs" if cpus else ""
+    extra = f", {cpu_label(m)}" if m.get("cpu_count") else ""
     load = f", load average {m['load_average'][0]:.1f}" if m.get("load_average") else ""
     return f"{kind}{extra}, jax {m.get('jax', '?')}, {str(m.get('date', '?'))[:10]}{load}"
 

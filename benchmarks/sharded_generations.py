@@ -187,10 +187,12 @@ def child_env(user: dict) -> dict:
 
 
 def markdown(result: dict) -> str:
+    from make_report import cpu_label
+
     m = result["machine"]
     lines = [
-        f"Machine: {m['device_count']} x {m['device_kind']} ({m['platform']}, {m['cpu_count']} "
-        f"CPUs), jax {m['jax']}, {m['date']}. Config: `{result['config']}`"
+        f"Machine: {m['device_count']} x {m['device_kind']} ({m['platform']}, {cpu_label(m)}), "
+        f"jax {m['jax']}, {m['date']}. Config: `{result['config']}`"
         + (f" with {', '.join(result['overrides'])}" if result["overrides"] else "")
         + f". Command: `{m['command']}`",
         "",

@@ -38,3 +38,22 @@ def test_trace_section_lists_kernels_by_source_with_their_share(tmp_path, monkey
     assert "| `compile_optim:_cholesky_solve` | 51 | 300.0 | 75% |" in lines
     assert "| `dynamics_rnea:_s_mul` | 10 | 100.0 | 25% |" in lines
     assert sum("by the project function" in line for line in lines) == 1  # not for the CPU run
+
+
+def test_machine_line_names_the_cpu_model_where_recorded():
+    """Benchmark JSONs record the CPU's model (`dynamics_throughput.cpu_model`, read from
+    ``/proc/cpuinfo`` on Linux), and the report's machine line shows it; older records without it
+    still render."""
+    from benchmarks.dynamics_throughput import cpu_model
+
+    model = cpu_model()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        names = [x.split(":", 1)[1].strip() for x in cpuinfo.read_text().splitlines()
+                 if x.startswith("model name")]  # fmt: skip
+        assert not names or model == names[0]
+    assert model
+    m = {"device_kind": "cpu", "cpu_count": 2, "jax": "0.10.2", "date": "2026-11-25T23:48:46"}
+    assert make_report._machine(m) == "cpu, 2 CPUs, jax 0.10.2, 2026-11-25"
+    m["cpu_model"] = "AMD EPYC"
+    assert make_report._machine(m) == "cpu, 2 CPUs, AMD EPYC, jax 0.10.2, 2026-11-25"
