@@ -24,6 +24,7 @@
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import functools
 import hashlib
 import importlib
@@ -224,14 +225,18 @@ class Background:
     on another core while this thread prepares the data); `result` waits for it and returns its
     value or raises its exception. The thread runs under the caller's x64 and matmul-precision
     settings (JAX keeps those per thread). A compile cannot be cancelled: a caller that fails
-    meanwhile should `wait` before it exits (exiting under a running XLA compile is unsafe)."""
+    meanwhile should `wait` before it exits (exiting under a running XLA compile is unsafe).
+    ``nice``: added to the thread's nice value (Linux), for work off the critical path; threads
+    it starts inherit it."""
 
-    def __init__(self, fn, *args):
+    def __init__(self, fn, *args, nice: int = 0):
         self._out: tuple = (None, None)
         x64 = bool(jax.config.jax_enable_x64)  # type: ignore[attr-defined]
         precision = jax.config.jax_default_matmul_precision  # type: ignore[attr-defined]
 
         def run():
+            if nice:
+                _lower_priority(nice)
             try:
                 with jax.enable_x64(x64), jax.default_matmul_precision(precision):
                     self._out = (fn(*args), None)
@@ -250,6 +255,13 @@ class Background:
         if error is not None:
             raise error
         return value
+
+
+def _lower_priority(nice: int) -> None:
+    """Raise this thread's nice value by ``nice`` (Linux: per thread; elsewhere nothing)."""
+    with contextlib.suppress(AttributeError, OSError):
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
 
 
 def _load(path: Path):

@@ -40,6 +40,11 @@ if TYPE_CHECKING:
     from evojax_motion.objective import CostProgram
 
 CONDITIONS_STREAM = 1  # fold_in index of the condition set's key (seed -> streams)
+# Nice value added to the thread that precompiles the setup's programs (`EarlyCompile`): the
+# step's compile is a new run's critical path, the setup's programs are needed only after the
+# demonstrations. 2 CPU cores, paper config, cold, 3 alternating rounds: 31.4 / 30.4 / 30.4 s to
+# the first generation against 31.5 / 32.4 / 33.1 s (`benchmarks/changes.md`, tenth session).
+PRECOMPILE_NICE = 10
 CONFIG_FILE, ROBOT_FILE, METRICS_FILE = "config.yaml", "robot.xml", "metrics.jsonl"
 CHECKPOINT_DIR, PLOT_DIR, SUMMARY_FILE = "checkpoints", "plots", "summary.json"
 DB_INITIAL, DB_GEN1, DB_FINAL = "db_initial.npz", "db_gen1.npz", "db_final.npz"
@@ -627,7 +632,7 @@ class EarlyCompile:
                 with contextlib.suppress(Exception):  # ditto
                     setup.precompile()
 
-            self._threads.append(Background(precompile))
+            self._threads.append(Background(precompile, nice=PRECOMPILE_NICE))
 
     def step(self):
         """``(avals, compiled)`` of the step, or None (not compiled here, or it failed)."""

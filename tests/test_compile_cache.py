@@ -2,8 +2,10 @@
 changed, a damaged file is traced again, and nothing is written without a cache directory."""
 
 import json
+import os
 import subprocess
 import sys
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple
@@ -222,3 +224,17 @@ def test_a_program_that_cannot_be_saved_still_compiles(tmp_path, capsys, monkeyp
     _assert_matches(out, args)
     assert "traced program not saved (Please install 'flatbuffers')" in capsys.readouterr().err
     assert not list((tmp_path / compile_cache.TRACED_DIR).glob("*"))
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="no per-thread priorities here")
+def test_background_nice_lowers_only_its_own_thread():
+    """``Background(..., nice=n)`` (the setup's precompile in `train`): its thread runs with the
+    nice value raised by n, the caller's thread keeps its own."""
+
+    def own():
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    base = own()
+    assert compile_cache.Background(own, nice=5).result() == min(base + 5, 19)
+    assert compile_cache.Background(own).result() == base
+    assert own() == base
