@@ -133,14 +133,18 @@ def bench_backend(robot, backend: str, states, ref_tau, repeats: int) -> dict:
     return out
 
 
+def _processor() -> str:
+    return platform.processor() or platform.machine()
+
+
 def cpu_model() -> str:
-    """The CPU's model name (Linux: ``/proc/cpuinfo``), else `platform.processor`: timings on
+    """The CPU's model name (Linux: ``/proc/cpuinfo``), else `_processor`: timings on
     CPUs of the same core count differ by model (`benchmarks/changes.md`, ninth session)."""
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
                 return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
+    return _processor()
 
 
 def machine_info() -> dict:
@@ -151,7 +155,7 @@ def machine_info() -> dict:
         "device_count": jax.device_count(),
         "cpu_count": os.cpu_count(),
         "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "processor": platform.processor() or platform.machine(),
+        "processor": _processor(),
         "cpu_model": cpu_model(),
         "python": platform.python_version(),
         "jax": jax.__version__,

@@ -135,7 +135,7 @@ def test_check_run_dir_refusals(tmp_path):
 def test_compile_wait_counts_the_early_compile_still_running():
     """``compile_seconds`` of a run's summary counts the wait for the step compiled in the
     background (`train.wait_for_step`): a compile that ends 0.3 s after the demonstrations and
-    conditions is 0.3 s not hidden (the ninth session's figures read 0.0 s there)."""
+    conditions is 0.3 s not hidden (earlier summaries read 0.0 s there)."""
     import time
 
     from evojax_motion.train import wait_for_step
