@@ -515,6 +515,86 @@ def make_objective(dyn: Dynamics, lo, hi, weight):
     return objective
 
 
+def _sum_nodes(terms: list) -> tuple:
+    """Sums over the nodes of ``terms``, each ``(M,)``, as one variadic reduction: one loop on
+    the CPU, the terms' shared producers computed once (`make_search_value`). At least two terms:
+    a single sum is XLA:CPU's YNNPACK reduction, whose input XLA materialises first."""
+    assert len(terms) >= 2
+    zeros = tuple(jnp.zeros((), t.dtype) for t in terms)
+    return jax.lax.reduce(
+        tuple(terms), zeros, lambda xs, ys: tuple(x + y for x, y in zip(xs, ys, strict=True)), (0,)
+    )
+
+
+def fused_search_gradient(dyn: Dynamics) -> bool:
+    """Whether `make_search_value` evaluates the gradient in one reduction over the nodes: where
+    the search objective hands ``dyn`` joint lists (`joint_lists`: the CPU) and ``dyn`` has
+    unstacked torques (`Dynamics.torques`: the scalar RNEA layout). Read at trace time."""
+    return joint_lists(dyn) and dyn.torques is not None
+
+
+def make_search_value(dyn: Dynamics, lo, hi, weight, fused: bool = True):
+    """``f(z (J, F), problem) -> penalised objective``: `make_objective`'s first output.
+
+    With ``fused`` (for the first-order methods, BFGS, Adam and L-BFGS, which take no second
+    derivatives of ``f``) where `fused_search_gradient`, ``f`` has a custom VJP. Its forward
+    pass evaluates the value and the gradient as one reduction over the nodes with 1 + J F
+    outputs (`_sum_nodes`): each node's gradient with respect to its q, qd and qdd by reverse
+    mode on that node's scalars (`Dynamics.torques`), contracted with the node's directions.
+    The value alone (the trial steps) is one reduction too.
+
+    Why: XLA's CPU compiler emits one loop per output array and recomputes in each loop what
+    the loops share. Autodiff of the stacked torques gave 21 cotangent arrays per node (q, qd,
+    qdd of 7 joints), each a loop that recomputed the recursion and its adjoint; the stacked
+    torques themselves were a loop that evaluated the recursion once per joint. The outputs of
+    one reduction come from one loop, where XLA computes what they share once: value and
+    gradient of the paper-scale batch 1.0-1.2 against 7.9-10.2 ms, the value 0.7 against 2.7 ms
+    (2 CPU cores; `benchmarks/changes.md`). Otherwise ``f`` is `make_objective`'s first output.
+    """
+    objective = make_objective(dyn, lo, hi, weight)
+    if not (fused and fused_search_gradient(dyn)):
+        return lambda z, problem: objective(z, problem)[0]
+    torques = dyn.torques
+    assert torques is not None  # fused_search_gradient
+
+    def node_parts(q, qd, qdd):
+        """Torque and penalty integrands at one node: q, qd, qdd sequences of J scalars."""
+        viol = sum(jnp.maximum(q[k] - hi[k], 0.0) ** 2 + jnp.maximum(lo[k] - q[k], 0.0) ** 2
+                   for k in range(len(q)))  # fmt: skip
+        return 0.5 * sum(t * t for t in torques(q, qd, qdd)), weight * viol
+
+    def node_value(q, qd, qdd):
+        torque, penalty = node_parts(q, qd, qdd)
+        return torque + penalty
+
+    def scaled_nodes(problem: Problem):
+        return (problem.duration * problem.node_w).astype(problem.node_ls.dtype)  # (M,)
+
+    @jax.custom_vjp
+    def value(z, problem: Problem):
+        torque, penalty = jax.vmap(node_parts)(*node_states(z, problem, joint_lists=True))
+        scale = scaled_nodes(problem)
+        sums = _sum_nodes([scale * torque, scale * penalty])
+        return sums[0] + sums[1]
+
+    def fwd(z, problem: Problem):
+        j, f = z.shape
+        states = node_states(z, problem, joint_lists=True)
+        h, gs = jax.vmap(jax.value_and_grad(node_value, argnums=(0, 1, 2)))(*states)
+        scale, dirs = scaled_nodes(problem), problem.node_dirs  # (M,), (3, M, J, F)
+        grads = [
+            sum(gs[a][k] * dirs[a, :, k, m] for a in range(3)) for k in range(j) for m in range(f)
+        ]
+        sums = _sum_nodes([scale * t for t in (h, *grads)])
+        return sums[0], jnp.stack(sums[1:]).reshape(j, f)
+
+    def bwd(g, ct):
+        return ct * g, None  # no cotangent for the problem's arrays
+
+    value.defvjp(fwd, bwd)
+    return value
+
+
 def _trust_region_step(bm, g, radius, eig=None):
     """Exact trust-region step of the model ``g.p + p.B.p / 2`` with ``|p| <= radius``, batched.
 
@@ -1057,7 +1137,8 @@ def compile_optimisation(
         settings.search_stride,
     )  # fmt: skip
     weight = jnp.asarray(settings.limit_penalty, dtype)
-    objective = make_objective(dyn, lo, hi, weight)
+    # Newton takes the objective's Hessian: no custom VJP there.
+    search_value = make_search_value(dyn, lo, hi, weight, fused=settings.method != "newton")
     solver = _SOLVERS[settings.method]
 
     c, j = coeffs_ls.shape[:2]
@@ -1075,7 +1156,7 @@ def compile_optimisation(
     def solve(chunk: Problem, z0, free) -> _Result:
         def fun(zf, i):
             prob = jax.tree_util.tree_map(lambda a: a[i], chunk)
-            return objective(zf.reshape(j, k), prob)[0]
+            return search_value(zf.reshape(j, k), prob)
 
         if settings.method != "bfgs":
             return solver(fun, z0, free, settings)

@@ -45,6 +45,8 @@ class Dynamics:
     body_positions: ``q (J,) -> (nbody, 3)`` world body origins (MuJoCo ``xpos``), for key points.
     form: the RNEA's layout (`dynamics_rnea.make_rnea`), None for MJX. The ``"scalar"`` one
     reads sequences of scalars as they are; the others stack them first.
+    torques: the ``"scalar"`` layout's `inverse` for sequences of J scalars, its torques a tuple
+    of J scalars (not stacked); None for the other layouts and MJX.
     """
 
     robot: Robot
@@ -54,6 +56,7 @@ class Dynamics:
     site_pose: Callable
     body_positions: Callable
     form: str | None = None
+    torques: Callable | None = None
 
 
 def make_dynamics(
@@ -90,6 +93,7 @@ def make_dynamics(
         site_pose=fns.site_pose,
         body_positions=fns.body_positions,
         form=form if backend == "rnea" else None,
+        torques=fns.torques,
     )
 
 

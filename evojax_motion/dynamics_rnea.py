@@ -66,6 +66,7 @@ class BackendFunctions(NamedTuple):
     inverse: Callable  # (q (J,), qd (J,), qdd (J,)) -> tau (J,)
     site_pose: Callable  # q (J,) -> (pos (3,), rot (3, 3))
     body_positions: Callable  # q (J,) -> (nbody, 3), world body origins (xpos)
+    torques: Callable | None = None  # sequences of J scalars -> tuple of J torques (scalar form)
 
 
 # -- compile time (numpy, float64) ------------------------------------------------------------
@@ -334,15 +335,34 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> 
         """q, qd, qdd: (J,) or sequences of J scalars -> tau (J,) = M qdd + C qd + g (+ armature,
         damping, stiffness). The scalar form reads sequences as they are (no stack)."""
         if form == "scalar" and not passive and isinstance(q, (list, tuple)):
-            q, qd, qdd = ([jnp.asarray(e, dtype) for e in x] for x in (q, qd, qdd))
-        else:
-            q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
+            return jnp.stack(torques(q, qd, qdd))
+        q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
         tau = rigid(q, qd, qdd)
+        tau = jnp.stack(tau) if form == "scalar" else tau
         if passive:
             tau = tau + armature * qdd + damping * qd + stiffness * (q - qpos_spring)
         return tau
 
-    return BackendFunctions(inverse=inverse, site_pose=site_pose, body_positions=body_positions)
+    def torques(q, qd, qdd):
+        """The scalar form's torques unstacked: q, qd, qdd sequences of J scalars -> a tuple of J
+        scalars, as `inverse`. For a consumer that reduces them to one value per sample (the
+        optimiser's search objective on the CPU): stacked, XLA's CPU compiler evaluates each
+        element of the stack on its own, the whole recursion once per joint."""
+        q, qd, qdd = ([jnp.asarray(e, dtype) for e in x] for x in (q, qd, qdd))
+        tau = rigid(q, qd, qdd)
+        if passive:
+            spring = [stiffness[k] * (q[k] - qpos_spring[k]) for k in range(len(tau))]
+            tau = tuple(
+                t + armature[k] * qdd[k] + damping[k] * qd[k] + spring[k] for k, t in enumerate(tau)
+            )
+        return tau
+
+    return BackendFunctions(
+        inverse=inverse,
+        site_pose=site_pose,
+        body_positions=body_positions,
+        torques=torques if form == "scalar" else None,
+    )
 
 
 class _Site(NamedTuple):
@@ -434,7 +454,8 @@ def _vector_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
 
 
 def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.dtype):
-    """The "scalar" form: (rigid-body inverse, site_pose, body_positions).
+    """The "scalar" form: (rigid-body inverse, site_pose, body_positions); the inverse returns a
+    tuple of J torques (`make_rnea` stacks them where it returns an array).
 
     Same algorithm as `_vector_functions`, recursing over parents instead of using the ancestor
     matrix, on tuples of scalars: constants are Python floats (weakly typed, so they take the
@@ -513,7 +534,7 @@ def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
             if p >= 0:
                 pf, pm = wrench[p]
                 wrench[p] = (_s_vadd(pf, force), _s_vadd(pm, moment))
-        return jnp.stack([jnp.asarray(t, dtype) for t in tau])
+        return tuple(jnp.asarray(t, dtype) for t in tau)
 
     def as_array(x):
         if isinstance(x, tuple):

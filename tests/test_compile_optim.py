@@ -24,11 +24,13 @@ from evojax_motion.compile_optim import (
     _Result,
     _subspace_step,
     cpu_fast_path,
+    fused_search_gradient,
     gauss_newton_model,
     joint_lists,
     limit_penalty,
     make_objective,
     make_optimisation_compiler,
+    make_search_value,
     optimise_in_chunks,
     penalty_model,
     problem_trajectory,
@@ -82,6 +84,7 @@ TOL_LINALG = 1e-10  # float64: trust-region steps and BFGS updates vs their clos
 TOL_CIRCLE = 1e-7
 TOL_GN = 1e-6  # relative: Gauss-Newton model vs central differences (h = 1e-6, float64)
 TOL_LAYOUT = 1e-5  # relative, float32: objective and gradient, joint lists vs one array
+TOL_FUSED = 1e-10  # relative, float64: the fused search gradient vs autodiff (summation order)
 # rad: start trajectories (q_ls) of the paper's reduced problems built in float32 (LAPACK, and the
 # accelerators' Jacobi SVDs) vs float64 (100 conditions of the catching config's generation 1).
 # Measured 2.4e-4 on both paths (1.5e-4 on the same problems' bases from an H100); with the end
@@ -659,6 +662,39 @@ def test_joint_lists_give_the_array_objective(setup, form, monkeypatch):
     np.testing.assert_allclose(np.asarray(f_lists), np.asarray(f_array), rtol=TOL_LAYOUT)
     np.testing.assert_allclose(np.asarray(g_lists), np.asarray(g_array),
                                atol=TOL_LAYOUT * np.abs(np.asarray(g_array)).max())  # fmt: skip
+
+
+def test_fused_search_gradient_matches_autodiff_and_finite_differences(setup, x64):
+    """`make_search_value` with the CPU's fused gradient (one reduction over the nodes, the scalar
+    RNEA layout's unstacked torques, a custom VJP) against autodiff of `make_objective` (vector
+    layout) and central differences, in float64, with limits tight enough that the penalty is
+    active; its value alone (the trial steps) too."""
+    s = setup
+    problems, z = _f64_problems(s)
+    lo, hi = jnp.asarray(s["lower"] + 0.2), jnp.asarray(s["upper"] - 0.2)
+    scalar = make_dynamics(s["robot"], "rnea", jnp.float64, "scalar")
+    assert fused_search_gradient(scalar)  # the test suite runs on CPU
+    vector = make_dynamics(s["robot"], "rnea", jnp.float64, "vector")
+    assert not fused_search_gradient(vector)
+    fused = make_search_value(scalar, lo, hi, 1e3)
+    objective = make_objective(vector, lo, hi, 1e3)
+    reference = jax.jit(jax.vmap(jax.value_and_grad(lambda zz, p: objective(zz, p)[0])))
+    f_ref, g_ref = map(np.asarray, reference(z, problems))
+    cost_ref = np.asarray(jax.vmap(lambda zz, p: objective(zz, p)[1])(z, problems))
+    assert np.all(f_ref > 1.01 * cost_ref)  # the penalty is active
+    f, g = map(np.asarray, jax.jit(jax.vmap(jax.value_and_grad(fused)))(z, problems))
+    np.testing.assert_allclose(f, f_ref, rtol=TOL_FUSED)
+    np.testing.assert_allclose(g, g_ref, rtol=0, atol=TOL_FUSED * np.abs(g_ref).max())
+    value = np.asarray(jax.jit(jax.vmap(fused))(z, problems))
+    np.testing.assert_allclose(value, f_ref, rtol=TOL_FUSED)
+    one = jax.tree_util.tree_map(lambda a: a[0], problems)
+    f_one = jax.jit(fused)
+    h = 1e-6
+    fd = np.zeros_like(g[0])
+    for idx in zip(*np.nonzero(np.asarray(one.mask)), strict=True):
+        e = jnp.zeros_like(z[0]).at[idx].set(h)
+        fd[idx] = (f_one(z[0] + e, one) - f_one(z[0] - e, one)) / (2 * h)
+    assert np.abs(g[0] - fd).max() <= TOL_GRAD * np.abs(fd).max()
 
 
 @pytest.fixture(scope="module")

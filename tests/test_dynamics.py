@@ -197,6 +197,23 @@ SMALL_ARM = """
 """
 
 
+def test_scalar_torques_match_mj_inverse(case):
+    """The scalar layout's unstacked torques (`Dynamics.torques`, sequences of scalars in, a tuple
+    out: the CPU optimiser's fused search gradient reads them) are `mj_inverse`'s, armature,
+    damping and stiffness included (`tree_arm`); float64."""
+    with jax.enable_x64(True):
+        dyn = make_dynamics(case.robot, "rnea", np.float64, form="scalar")
+        assert dyn.torques is not None
+        assert make_dynamics(case.robot, "rnea", np.float64, form="vector").torques is None
+
+        def one(q, qd, qdd):
+            j = case.robot.n_joints
+            return jnp.stack(dyn.torques(*([x[k] for k in range(j)] for x in (q, qd, qdd))))
+
+        tau = np.asarray(jax.jit(jax.vmap(one))(case.q, case.qd, case.qdd))
+    assert rel_err(tau, case.tau) <= TOL_TAU_F64
+
+
 @pytest.mark.parametrize("form", FORMS)
 def test_rnea_form_gradients_match_finite_differences_small_arm(form, x64):
     """Both layouts' gradients on a 3-joint arm (the scalar form's gradient compiles slowly on
