@@ -450,28 +450,49 @@ def joint_lists(dyn: Dynamics) -> bool:
     return not fused_products() and dyn.form == "scalar"
 
 
+def _sum_nodes(terms: list, axis: int = 0) -> tuple:
+    """Sums over ``axis`` (the nodes) of ``terms``, arrays of one shape, as one variadic
+    reduction: one loop on the CPU, one kernel on GPUs, the terms' shared producers computed
+    once (`make_search_value`). At least two terms: a single sum is XLA:CPU's YNNPACK
+    reduction, whose input XLA materialises first."""
+    assert len(terms) >= 2
+    zeros = tuple(jnp.zeros((), t.dtype) for t in terms)
+    return jax.lax.reduce(
+        tuple(terms), zeros, lambda xs, ys: tuple(x + y for x, y in zip(xs, ys, strict=True)),
+        (axis,),
+    )  # fmt: skip
+
+
 def penalty_model(z, problems: Problem, lo, hi, weight):
     """Gradient ``(B, J F)`` and Hessian ``(B, J F, J F)`` of `limit_penalty` at the search
     nodes for a batch of problems at ``z (B, J F)``, in closed form (q is linear in z, the
     penalty a sum of squared violations): per joint, ``2 weight D sum_m w_m v_m d_m`` and
     ``2 weight D sum_m w_m [q_m outside] d_m d_m^T``, ``d_m (F,)`` the joint's directions at
     node m, ``v_m`` its signed violation; joints do not mix (block diagonal). The BFGS method's
-    exact part of its model (`_trust_region`)."""
+    exact part of its model (`_trust_region`).
+
+    Elementwise products summed over the nodes in one reduction (`_sum_nodes`): as einsums, on 2
+    CPU cores, the Hessian's blocks alone were a dot of ~0.35 ms a pass at paper scale."""
     dirs = problems.node_dirs[:, 0]  # (B, M, J, F)
     b, _, j, f = dirs.shape
-    q = problems.node_ls[:, 0] + jnp.sum(z.reshape(b, 1, j, f) * dirs, axis=-1)  # (B, M, J)
+    zf = z.reshape(b, 1, j, f)
+    q = problems.node_ls[:, 0] + sum(zf[..., k] * dirs[..., k] for k in range(f))  # (B, M, J)
     viol = jnp.maximum(q - hi, 0.0) - jnp.maximum(lo - q, 0.0)
-    c = (2.0 * weight * problems.duration)[:, None] * problems.node_w  # (B, M)
-    outside = (viol != 0.0).astype(dirs.dtype)
-    if fused_products():  # a reduction over the nodes XLA fuses, not a GEMM kernel of its own
-        g = jnp.sum((c[:, :, None] * viol)[..., None] * dirs, axis=1)
-        weighted = (c[:, :, None] * outside)[..., None] * dirs
-        blocks = jnp.sum(weighted[..., :, None] * dirs[..., None, :], axis=1)
-    else:
-        exact = jax.lax.Precision.HIGHEST
-        g = jnp.einsum("bm,bmj,bmjf->bjf", c, viol, dirs, precision=exact)
-        blocks = jnp.einsum("bm,bmj,bmjf,bmjg->bjfg", c, outside, dirs, dirs, precision=exact)
-    h = jnp.einsum("bjfg,jk->bjfkg", blocks, jnp.eye(j, dtype=dirs.dtype))
+    c = ((2.0 * weight * problems.duration)[:, None] * problems.node_w)[:, :, None]  # (B, M, 1)
+    c_outside = jnp.where(viol != 0.0, c, 0.0)
+    pairs = [(k, m) for k in range(f) for m in range(k, f)]
+    sums = _sum_nodes(
+        [c * viol * dirs[..., k] for k in range(f)]
+        + [c_outside * dirs[..., k] * dirs[..., m] for k, m in pairs],
+        axis=1,
+    )  # each (B, J)
+    g = jnp.stack(sums[:f], axis=-1)  # (B, J, F)
+    block = dict(zip(pairs, sums[f:], strict=True))
+    blocks = jnp.stack(
+        [jnp.stack([block[min(k, m), max(k, m)] for m in range(f)], -1) for k in range(f)], -2
+    )  # (B, J, F, F)
+    eye = jnp.eye(j, dtype=dirs.dtype)
+    h = blocks[:, :, :, None, :] * eye[None, :, None, :, None]  # (B, J, F, J, F)
     return g.reshape(b, j * f), h.reshape(b, j * f, j * f)
 
 
@@ -515,22 +536,15 @@ def make_objective(dyn: Dynamics, lo, hi, weight):
     return objective
 
 
-def _sum_nodes(terms: list) -> tuple:
-    """Sums over the nodes of ``terms``, each ``(M,)``, as one variadic reduction: one loop on
-    the CPU, the terms' shared producers computed once (`make_search_value`). At least two terms:
-    a single sum is XLA:CPU's YNNPACK reduction, whose input XLA materialises first."""
-    assert len(terms) >= 2
-    zeros = tuple(jnp.zeros((), t.dtype) for t in terms)
-    return jax.lax.reduce(
-        tuple(terms), zeros, lambda xs, ys: tuple(x + y for x, y in zip(xs, ys, strict=True)), (0,)
-    )
-
-
 def fused_search_gradient(dyn: Dynamics) -> bool:
     """Whether `make_search_value` evaluates the gradient in one reduction over the nodes: where
-    the search objective hands ``dyn`` joint lists (`joint_lists`: the CPU) and ``dyn`` has
-    unstacked torques (`Dynamics.torques`: the scalar RNEA layout). Read at trace time."""
-    return joint_lists(dyn) and dyn.torques is not None
+    ``dyn`` has unstacked torques (`Dynamics.torques`: the scalar RNEA layout, on accelerators
+    and in the CPU's fast path, `cpu_fast_path`).
+
+    On the CPU it is what makes the fast path fast (`make_search_value`). On one H200 it was
+    faster too (a generation at 1,000 / 10,000 conditions 8.54 / 45.5 ms against 10.15 / 59.6
+    ms; `benchmarks/changes.md`): the value and gradient of a pass are one kernel."""
+    return dyn.torques is not None
 
 
 def make_search_value(dyn: Dynamics, lo, hi, weight, fused: bool = True):
