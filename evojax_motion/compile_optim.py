@@ -116,8 +116,10 @@ GN_NODE_STRIDE = 3
 GN_RIDGE = 1e-4
 INITIAL_MODELS = ("gauss-newton", "identity")
 RHO_ACCEPT, RHO_BAD, RHO_GOOD = 1e-4, 0.25, 0.75  # ratio of actual to predicted decrease
-# Default `OptimSettings.max_batch` (chosen on an H100: docs/scaling.md).
-MAX_BATCH = 4096
+# Default `OptimSettings.max_batch` (chosen on an H200 with the fused search gradient: chunks
+# of ~3,000 problems ran 20-23 % faster than of ~4,000 at 30,000 and 100,000 conditions;
+# docs/scaling.md).
+MAX_BATCH = 3072
 SECULAR_ITERS = 12  # Newton iterations on the trust-region secular equation
 COLUMN_REDUCE_MAX_N = 2  # `_row_reduce`: rows up to this length are summed column by column
 EIG_FLOOR = 1e-6  # eigenvalues below this fraction of the largest count as zero (float32 noise)
@@ -160,8 +162,9 @@ class OptimSettings:
       split into equal chunks optimised one after another (`optimise_in_chunks`). On an H100 a
       batch's time per problem doubled between 7,500 and 15,000 problems at once (most likely
       its working set leaving the GPU's cache; not proven), and with BFGS's subspace step
-      chunks of ~4,000 ran 16-22 % faster than of ~7,700 at 30,000 and 100,000 conditions
-      (`docs/scaling.md`); null: the whole batch at once.
+      chunks of ~4,000 ran 16-22 % faster than of ~7,700 at 30,000 and 100,000 conditions; with
+      the fused search gradient (`make_search_value`) on an H200, chunks of ~3,000 20-23 %
+      faster than of ~4,000 (`docs/scaling.md`); null: the whole batch at once.
     - ``initial_model``: BFGS only, its first model of the torque cost: ``"gauss-newton"``
       (`gauss_newton_model`: forward-mode Jacobians on a third of the nodes, ~3 optimiser
       passes' cost; paper configuration: 18 iterations median instead of 36, and p95 gap to
