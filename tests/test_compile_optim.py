@@ -85,6 +85,7 @@ TOL_CIRCLE = 1e-7
 TOL_GN = 1e-6  # relative: Gauss-Newton model vs central differences (h = 1e-6, float64)
 TOL_LAYOUT = 1e-5  # relative, float32: objective and gradient, joint lists vs one array
 TOL_FUSED = 1e-10  # relative, float64: the fused search gradient vs autodiff (summation order)
+TOL_FUSED_RUN = 1e-4  # relative cost, float32: an optimiser's result, fused gradient vs autodiff
 # rad: start trajectories (q_ls) of the paper's reduced problems built in float32 (LAPACK, and the
 # accelerators' Jacobi SVDs) vs float64 (100 conditions of the catching config's generation 1).
 # Measured 2.4e-4 on both paths (1.5e-4 on the same problems' bases from an H100); with the end
@@ -521,6 +522,23 @@ def test_accelerator_path_matches_lapack(setup, monkeypatch):
         np.asarray(out.cost), np.asarray(s["out"].cost[:GOOD]), rtol=TOL_JACOBI
     )
     assert np.asarray(out.within_limits).all()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["adam", "lbfgs"])
+def test_first_order_methods_run_on_the_fused_search_gradient(setup, method):
+    """Adam and L-BFGS (optax) through `make_search_value`'s custom VJP (the scalar RNEA layout,
+    as on accelerators) reach the optima they reach through autodiff of the vector layout."""
+    s = setup
+    take = jax.tree_util.tree_map(lambda a: a[:2], (s["basis"], s["boundary"]))
+    settings = OptimSettings(method=method, max_iters=40)
+    costs = {}
+    for form in ("scalar", "vector"):
+        dyn = make_dynamics(s["robot"], "rnea", jnp.float32, form)
+        assert fused_search_gradient(dyn) == (form == "scalar")
+        compile_fn = make_optimisation_compiler(dyn, s["grid"], s["lower"], s["upper"], settings)
+        costs[form] = np.asarray(compile_fn(*take).cost)
+    np.testing.assert_allclose(costs["scalar"], costs["vector"], rtol=TOL_FUSED_RUN)
 
 
 @pytest.mark.slow
