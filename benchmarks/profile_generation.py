@@ -4,12 +4,15 @@ Stages (each jitted alone, timed after compilation, median of ``--repeats``):
 ``neighbours`` (eq. 6 top-k), ``pca`` (per-joint PCA of the neighbours), ``bc_solve``
 (`compile_interp.solve_boundary` with the optimisation compiler's rule), ``reduced``
 (`compile_optim.reduced_problems`: BC solve + orthonormal null directions + node arrays),
-``value``, ``value_grad`` and ``hessian`` of the batched search objective at z = 0,
+``value`` and ``value_grad`` of the batched search objective at z = 0 as the optimiser
+compiles them (`compile_optim.cpu_fast_path`, `make_search_value`: on CPU with BFGS the scalar
+RNEA layout and one reduction over the nodes), ``value_grad_autodiff`` (autodiff of
+`make_objective` with the config's dynamics, for comparison) and ``hessian`` (of the latter),
 ``eigh`` of the batch's trust-region model (B, n, n) (``jnp.linalg.eigh``, and ``small_eigh``:
 Jacobi on accelerators), ``tr_step`` (the trust-region step of that model: eigh + secular
 iterations), and the whole optimiser
-(``optimise``) and generation step (``step``). The sum of the parts is not the step: inside one
-jit XLA fuses across them.
+(``optimise``, compiled as the step compiles it) and generation step (``step``). The sum of the
+parts is not the step: inside one jit XLA fuses across them.
 
 Usage:
     python benchmarks/profile_generation.py --conditions 300 [--set compiler.method=bfgs]
@@ -41,7 +44,9 @@ from evojax_motion.compile_interp import solve_boundary  # noqa: E402
 from evojax_motion.compile_optim import (  # noqa: E402
     _trust_region_step,
     compile_optimisation,
+    cpu_fast_path,
     make_objective,
+    make_search_value,
     reduced_problems,
 )
 from evojax_motion.config import load_config  # noqa: E402
@@ -82,10 +87,10 @@ def main(argv=None) -> None:
     hi = jnp.asarray(robot.upper) - st.limit_margin
     stages: dict = {}
 
-    def run(name, fn, *a):
+    def run(name, fn, *a, options=None):
         if name in skip:
             return None
-        stages[name], out = timed(jax.jit(fn), *a, repeats=args.repeats)
+        stages[name], out = timed(jax.jit(fn, compiler_options=options), *a, repeats=args.repeats)
         print(json.dumps({name: stages[name]}), flush=True)
         return out
 
@@ -99,15 +104,21 @@ def main(argv=None) -> None:
         basis, bd)  # fmt: skip
     prob = red[0]
     objective = make_objective(dyn, lo, hi, st.limit_penalty)
+    fast_dyn, options = cpu_fast_path(dyn, st)  # as the optimiser's program is compiled
+    search = make_search_value(fast_dyn, lo, hi, st.limit_penalty, fused=st.method != "newton")
     j, f = prob.mask.shape[1:]
     z0 = jnp.zeros((args.conditions, j * f))
 
     def fun(z, pr):
+        return search(z.reshape(j, f), pr)
+
+    def autodiff(z, pr):
         return objective(z.reshape(j, f), pr)[0]
 
-    run("value", jax.vmap(fun), z0, prob)
-    run("value_grad", jax.vmap(jax.value_and_grad(fun)), z0, prob)
-    hess = run("hessian", jax.vmap(jax.hessian(fun)), z0, prob)
+    run("value", jax.vmap(fun), z0, prob, options=options)
+    run("value_grad", jax.vmap(jax.value_and_grad(fun)), z0, prob, options=options)
+    run("value_grad_autodiff", jax.vmap(jax.value_and_grad(autodiff)), z0, prob)
+    hess = run("hessian", jax.vmap(jax.hessian(autodiff)), z0, prob)
     if hess is not None:
         sym = 0.5 * (hess + jnp.swapaxes(hess, 1, 2)) + 1e-3 * jnp.eye(j * f)
         run("eigh", jnp.linalg.eigh, sym)
@@ -116,7 +127,8 @@ def main(argv=None) -> None:
         radius = jnp.full((args.conditions,), 0.3)
         run("tr_step", _trust_region_step, sym, g0, radius)
     out = run("optimise", lambda ba, bc: compile_optimisation(
-        ba, bc, dyn, grid, robot.lower, robot.upper, st), basis, bd)  # fmt: skip
+        ba, bc, fast_dyn, grid, robot.lower, robot.upper, st),
+        basis, bd, options=options)  # fmt: skip
     n_human = count_human(db)
     step = make_generation_step(dyn, grid, robot.lower, robot.upper, n_human, b, st, cfg.evolution)
     if "step" not in skip:
