@@ -400,10 +400,15 @@ def problem_trajectory(problem: Problem, z: jnp.ndarray) -> jnp.ndarray:
     return problem.q_ls + jnp.einsum("jk,jkt->tj", z, problem.dirs)
 
 
+def squared_violation(q, lo, hi):
+    """``relu(q - hi)^2 + relu(lo - q)^2``, elementwise (arrays or scalars)."""
+    return jnp.maximum(q - hi, 0.0) ** 2 + jnp.maximum(lo - q, 0.0) ** 2
+
+
 def limit_penalty(w, q, duration, lo, hi, weight) -> jnp.ndarray:
     """``weight * int relu(q - hi)^2 + relu(lo - q)^2 dt`` for ``q (M, J)`` at nodes with
     quadrature weights ``w (M,)``: a scalar."""
-    viol = jnp.maximum(q - hi, 0.0) ** 2 + jnp.maximum(lo - q, 0.0) ** 2
+    viol = squared_violation(q, lo, hi)
     return weight * duration * jnp.sum(jnp.asarray(w, q.dtype) * jnp.sum(viol, axis=-1))
 
 
@@ -576,8 +581,7 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, fused: bool = True):
 
     def node_parts(q, qd, qdd):
         """Torque and penalty integrands at one node: q, qd, qdd sequences of J scalars."""
-        viol = sum(jnp.maximum(q[k] - hi[k], 0.0) ** 2 + jnp.maximum(lo[k] - q[k], 0.0) ** 2
-                   for k in range(len(q)))  # fmt: skip
+        viol = sum(squared_violation(q[k], lo[k], hi[k]) for k in range(len(q)))
         return 0.5 * sum(t * t for t in torques(q, qd, qdd)), weight * viol
 
     def node_value(q, qd, qdd):
