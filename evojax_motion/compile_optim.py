@@ -460,9 +460,9 @@ def joint_lists(dyn: Dynamics) -> bool:
 
 def _sum_nodes(terms: list, axis: int = 0) -> tuple:
     """Sums over ``axis`` (the nodes) of ``terms``, arrays of one shape, as one variadic
-    reduction: one loop on the CPU, one kernel on GPUs, the terms' shared producers computed
-    once (`make_search_value`). At least two terms: a single sum is XLA:CPU's YNNPACK
-    reduction, whose input XLA materialises first."""
+    reduction: one loop on the CPU, the terms' shared producers computed once
+    (`make_search_value`; XLA's GPU compiler splits it into a few kernels). At least two
+    terms: a single sum is XLA:CPU's YNNPACK reduction, whose input XLA materialises first."""
     assert len(terms) >= 2
     zeros = tuple(jnp.zeros((), t.dtype) for t in terms)
     return jax.lax.reduce(
@@ -551,7 +551,7 @@ def fused_search_gradient(dyn: Dynamics) -> bool:
 
     On the CPU it is what makes the fast path fast (`make_search_value`). On one H200 it was
     faster too (a generation at 1,000 / 10,000 conditions 8.54 / 45.5 ms against 10.15 / 59.6
-    ms; `benchmarks/changes.md`): the value and gradient of a pass are one kernel."""
+    ms; `benchmarks/changes.md`): the value and gradient of a pass are ~10 kernels there."""
     return dyn.torques is not None
 
 
