@@ -105,7 +105,7 @@ def main(argv=None) -> None:
     prob = red[0]
     objective = make_objective(dyn, lo, hi, st.limit_penalty)
     fast_dyn, options = cpu_fast_path(dyn, st)  # as the optimiser's program is compiled
-    search = make_search_value(fast_dyn, lo, hi, st.limit_penalty, fused=st.method != "newton")
+    search = make_search_value(fast_dyn, lo, hi, st.limit_penalty, st.method)
     j, f = prob.mask.shape[1:]
     z0 = jnp.zeros((args.conditions, j * f))
 

@@ -480,7 +480,8 @@ def penalty_model(z, problems: Problem, lo, hi, weight):
     exact part of its model (`_trust_region`).
 
     Elementwise products summed over the nodes in one reduction (`_sum_nodes`): as einsums, on 2
-    CPU cores, the Hessian's blocks alone were a dot of ~0.35 ms a pass at paper scale."""
+    CPU cores, the Hessian's blocks alone were a dot of ~0.35 ms a pass at paper scale (in a
+    profiler trace), the whole model 800 against 257 us a call now."""
     dirs = problems.node_dirs[:, 0]  # (B, M, J, F)
     b, _, j, f = dirs.shape
     zf = z.reshape(b, 1, j, f)
@@ -495,10 +496,8 @@ def penalty_model(z, problems: Problem, lo, hi, weight):
         axis=1,
     )  # each (B, J)
     g = jnp.stack(sums[:f], axis=-1)  # (B, J, F)
-    block = dict(zip(pairs, sums[f:], strict=True))
-    blocks = jnp.stack(
-        [jnp.stack([block[min(k, m), max(k, m)] for m in range(f)], -1) for k in range(f)], -2
-    )  # (B, J, F, F)
+    pair_of = np.array([[pairs.index((min(k, m), max(k, m))) for m in range(f)] for k in range(f)])
+    blocks = jnp.stack(sums[f:], axis=-1)[..., pair_of]  # (B, J, F, F)
     eye = jnp.eye(j, dtype=dirs.dtype)
     h = blocks[:, :, :, None, :] * eye[None, :, None, :, None]  # (B, J, F, J, F)
     return g.reshape(b, j * f), h.reshape(b, j * f, j * f)
@@ -555,15 +554,16 @@ def fused_search_gradient(dyn: Dynamics) -> bool:
     return dyn.torques is not None
 
 
-def make_search_value(dyn: Dynamics, lo, hi, weight, fused: bool = True):
-    """``f(z (J, F), problem) -> penalised objective``: `make_objective`'s first output.
+def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
+    """``f(z (J, F), problem) -> penalised objective``: `make_objective`'s first output, for the
+    optimiser of ``method`` (`METHODS`).
 
-    With ``fused`` (for the first-order methods, BFGS, Adam and L-BFGS, which take no second
-    derivatives of ``f``) where `fused_search_gradient`, ``f`` has a custom VJP. Its forward
-    pass evaluates the value and the gradient as one reduction over the nodes with 1 + J F
-    outputs (`_sum_nodes`): each node's gradient with respect to its q, qd and qdd by reverse
-    mode on that node's scalars (`Dynamics.torques`), contracted with the node's directions.
-    The value alone (the trial steps) is one reduction too.
+    For the first-order methods (BFGS, Adam and L-BFGS, which take no second derivatives of
+    ``f``; Newton takes its Hessian) where `fused_search_gradient`, ``f`` has a custom VJP. Its
+    forward pass evaluates the value and the gradient as one reduction over the nodes with
+    1 + J F outputs (`_sum_nodes`): each node's gradient with respect to its q, qd and qdd by
+    reverse mode on that node's scalars (`Dynamics.torques`), contracted with the node's
+    directions. The value alone (the trial steps) is one reduction too.
 
     Why: XLA's CPU compiler emits one loop per output array and recomputes in each loop what
     the loops share. Autodiff of the stacked torques gave 21 cotangent arrays per node (q, qd,
@@ -573,8 +573,8 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, fused: bool = True):
     gradient of the paper-scale batch 1.0-1.2 against 7.9-10.2 ms, the value 0.7 against 2.7 ms
     (2 CPU cores; `benchmarks/changes.md`). Otherwise ``f`` is `make_objective`'s first output.
     """
-    objective = make_objective(dyn, lo, hi, weight)
-    if not (fused and fused_search_gradient(dyn)):
+    if method == "newton" or not fused_search_gradient(dyn):
+        objective = make_objective(dyn, lo, hi, weight)
         return lambda z, problem: objective(z, problem)[0]
     torques = dyn.torques
     assert torques is not None  # fused_search_gradient
@@ -1158,8 +1158,7 @@ def compile_optimisation(
         settings.search_stride,
     )  # fmt: skip
     weight = jnp.asarray(settings.limit_penalty, dtype)
-    # Newton takes the objective's Hessian: no custom VJP there.
-    search_value = make_search_value(dyn, lo, hi, weight, fused=settings.method != "newton")
+    search_value = make_search_value(dyn, lo, hi, weight, settings.method)
     solver = _SOLVERS[settings.method]
 
     c, j = coeffs_ls.shape[:2]

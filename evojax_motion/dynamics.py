@@ -45,8 +45,8 @@ class Dynamics:
     body_positions: ``q (J,) -> (nbody, 3)`` world body origins (MuJoCo ``xpos``), for key points.
     form: the RNEA's layout (`dynamics_rnea.make_rnea`), None for MJX. The ``"scalar"`` one
     reads sequences of scalars as they are; the others stack them first.
-    torques: the ``"scalar"`` layout's `inverse` for sequences of J scalars, its torques a tuple
-    of J scalars (not stacked); None for the other layouts and MJX.
+    torques: the ``"scalar"`` layout's `inverse` with its torques a tuple of J scalars (not
+    stacked; `inverse` stacks them); None for the other layouts and MJX.
     """
 
     robot: Robot

@@ -331,30 +331,28 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> 
         np.asarray(x, dtype) for x in (armature, damping, stiffness, m.qpos_spring[qpos_adr])
     )
 
+    def joint_space(q, qd, qdd, k=slice(None)):
+        """The joint-space terms of joints ``k``: all (arrays ``(J,)``) or one (scalars)."""
+        return armature[k] * qdd + damping[k] * qd + stiffness[k] * (q - qpos_spring[k])
+
     def inverse(q, qd, qdd):
         """q, qd, qdd: (J,) or sequences of J scalars -> tau (J,) = M qdd + C qd + g (+ armature,
-        damping, stiffness). The scalar form reads sequences as they are (no stack)."""
-        if form == "scalar" and not passive and isinstance(q, (list, tuple)):
+        damping, stiffness). The scalar form is `torques`, stacked."""
+        if form == "scalar":
             return jnp.stack(torques(q, qd, qdd))
         q, qd, qdd = (jnp.asarray(x, dtype) for x in (q, qd, qdd))
         tau = rigid(q, qd, qdd)
-        tau = jnp.stack(tau) if form == "scalar" else tau
-        if passive:
-            tau = tau + armature * qdd + damping * qd + stiffness * (q - qpos_spring)
-        return tau
+        return tau + joint_space(q, qd, qdd) if passive else tau
 
     def torques(q, qd, qdd):
-        """The scalar form's torques unstacked: q, qd, qdd sequences of J scalars -> a tuple of J
-        scalars, as `inverse`. For a consumer that reduces them to one value per sample (the
-        optimiser's search objective on the CPU): stacked, XLA's CPU compiler evaluates each
-        element of the stack on its own, the whole recursion once per joint."""
+        """The scalar form's torques unstacked: q, qd, qdd (J,) or sequences of J scalars (read
+        as they are) -> a tuple of J scalars, as `inverse`. For a consumer that reduces them to
+        one value per sample (the optimiser's search objective): stacked, XLA's CPU compiler
+        evaluates each element of the stack on its own, the whole recursion once per joint."""
         q, qd, qdd = ([jnp.asarray(e, dtype) for e in x] for x in (q, qd, qdd))
         tau = rigid(q, qd, qdd)
         if passive:
-            spring = [stiffness[k] * (q[k] - qpos_spring[k]) for k in range(len(tau))]
-            tau = tuple(
-                t + armature[k] * qdd[k] + damping[k] * qd[k] + spring[k] for k, t in enumerate(tau)
-            )
+            tau = tuple(t + joint_space(q[k], qd[k], qdd[k], k) for k, t in enumerate(tau))
         return tau
 
     return BackendFunctions(

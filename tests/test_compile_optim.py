@@ -171,6 +171,16 @@ def test_settings_validation():
         validate_limits(np.array([0.0, 1.0]), np.array([1.0, 0.5]), 2)
 
 
+def _central_differences(f, z, prob, h: float = 1e-6) -> np.ndarray:
+    """Central differences (step ``h``) of ``f(z, prob)`` in ``z``'s free entries (``prob.mask``;
+    zero elsewhere)."""
+    fd = np.zeros(z.shape)
+    for idx in zip(*np.nonzero(np.asarray(prob.mask)), strict=True):
+        e = jnp.zeros_like(z).at[idx].set(h)
+        fd[idx] = (f(z + e, prob) - f(z - e, prob)) / (2 * h)
+    return fd
+
+
 def test_gradient_in_null_space_matches_finite_differences(setup, x64):
     s = setup
     dyn = make_dynamics(s["robot"], "rnea", jnp.float64)
@@ -185,11 +195,7 @@ def test_gradient_in_null_space_matches_finite_differences(setup, x64):
         prob = jax.tree_util.tree_map(lambda a, c=c: a[c], problems)
         z = jnp.asarray(rng.normal(0, 0.2, prob.mask.shape)) * prob.mask
         grad = np.asarray(grad_f(z, prob))
-        h = 1e-6
-        fd = np.zeros_like(grad)
-        for idx in zip(*np.nonzero(np.asarray(prob.mask))):
-            e = jnp.zeros_like(z).at[idx].set(h)
-            fd[idx] = (f(z + e, prob) - f(z - e, prob)) / (2 * h)
+        fd = _central_differences(f, z, prob)
         assert np.abs(grad - fd).max() <= TOL_GRAD * max(1.0, np.abs(fd).max())
         assert np.abs(fd).max() > 0  # a real check: the gradient is not trivially zero
 
@@ -692,7 +698,7 @@ def test_fused_search_gradient_matches_autodiff_and_finite_differences(setup, x6
     assert fused_search_gradient(scalar)  # the test suite runs on CPU
     vector = make_dynamics(s["robot"], "rnea", jnp.float64, "vector")
     assert not fused_search_gradient(vector)
-    fused = make_search_value(scalar, lo, hi, 1e3)
+    fused = make_search_value(scalar, lo, hi, 1e3, "bfgs")
     objective = make_objective(vector, lo, hi, 1e3)
     reference = jax.jit(jax.vmap(jax.value_and_grad(lambda zz, p: objective(zz, p)[0])))
     f_ref, g_ref = map(np.asarray, reference(z, problems))
@@ -704,12 +710,7 @@ def test_fused_search_gradient_matches_autodiff_and_finite_differences(setup, x6
     value = np.asarray(jax.jit(jax.vmap(fused))(z, problems))
     np.testing.assert_allclose(value, f_ref, rtol=TOL_FUSED)
     one = jax.tree_util.tree_map(lambda a: a[0], problems)
-    f_one = jax.jit(fused)
-    h = 1e-6
-    fd = np.zeros_like(g[0])
-    for idx in zip(*np.nonzero(np.asarray(one.mask)), strict=True):
-        e = jnp.zeros_like(z[0]).at[idx].set(h)
-        fd[idx] = (f_one(z[0] + e, one) - f_one(z[0] - e, one)) / (2 * h)
+    fd = _central_differences(jax.jit(fused), z[0], one)
     assert np.abs(g[0] - fd).max() <= TOL_GRAD * np.abs(fd).max()
 
 
