@@ -138,31 +138,35 @@ def program_key(parts: Any, args: tuple) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def compile_traced(
-    jitted, args: tuple, parts: Any, compiler_options: dict | None = None, on_traced=None
-):
-    """``jitted.lower(*args).compile()``, reusing the traced program of an earlier process.
+def lower_traced(jitted, args: tuple, parts: Any, compiler_options: dict | None = None):
+    """``jitted.lower(*args)``, reusing the traced program of an earlier process.
 
-    ``jitted``: a ``jax.jit`` function; ``parts``: a JSON-able description of everything its
-    closure depends on that the module doc's key does not cover (e.g. config sections, a model
-    digest), or None where the caller cannot name it (nothing is then kept on disk);
-    ``compiler_options``: those of ``jitted``'s jit (they are not part of a traced program).
-    Without a compilation cache directory (or ``parts``): ``jitted.lower(*args).compile()``.
-    With one, the program is exported once (``jax.export``) and always compiled from the export,
-    so the persistent cache finds the same program in every process. ``on_traced()``: called
-    between tracing and compiling (Python tracing holds the GIL, XLA's compile does not: the cue
-    for another thread to trace meanwhile).
+    ``jitted``: a ``jax.jit`` function; ``args``: arrays or ``jax.ShapeDtypeStruct``; ``parts``: a
+    JSON-able description of everything its closure depends on that the module doc's key does
+    not cover (e.g. config sections, a model digest), or None where the caller cannot name it
+    (nothing is then kept on disk); ``compiler_options``: those of ``jitted``'s jit (they are
+    not part of a traced program). Without a compilation cache directory (or ``parts``):
+    ``jitted.lower(*args)``. With one, the program is exported once (``jax.export``) and always
+    lowered from the export, so the persistent cache finds the same program in every process.
     """
     folder = None if parts is None else traced_cache_dir()
     if folder is None:
-        lowered = jitted.lower(*args)
-    else:
-        path = folder / f"{program_key(parts, args)}{_SUFFIX}"
-        exported = _load(path)
-        if exported is None:
-            exported = jax.export.export(jitted)(*args)
-            _save(path, exported)
-        lowered = jax.jit(exported.call, compiler_options=compiler_options).lower(*args)
+        return jitted.lower(*args)
+    path = folder / f"{program_key(parts, args)}{_SUFFIX}"
+    exported = _load(path)
+    if exported is None:
+        exported = jax.export.export(jitted)(*args)
+        _save(path, exported)
+    return jax.jit(exported.call, compiler_options=compiler_options).lower(*args)
+
+
+def compile_traced(
+    jitted, args: tuple, parts: Any, compiler_options: dict | None = None, on_traced=None
+):
+    """``jitted.lower(*args).compile()`` through `lower_traced` (same arguments).
+    ``on_traced()``: called between tracing and compiling (Python tracing holds the GIL, XLA's
+    compile does not: the cue for another thread to trace meanwhile)."""
+    lowered = lower_traced(jitted, args, parts, compiler_options)
     if on_traced is not None:
         on_traced()
     return lowered.compile()

@@ -323,6 +323,25 @@ class _Result(NamedTuple):
     converged: jnp.ndarray
 
 
+class Prepared(NamedTuple):
+    """A batch of C conditions made ready for the optimiser (`prepare_optimisation`): its B =
+    ``n_starts * C`` problems (start-major) and what the optimiser starts from.
+
+    problems: `Problem` with ``(B, ...)`` arrays; z0, free: ``(B, J F)`` the start and the free
+    directions (bool); coeffs_ls: ``(C, J, K+1)`` the BC solution at z = 0; null: ``(C, J, K+1,
+    F)`` its free directions in the weights; initial: ``(B, J F, J F)`` BFGS's first model of
+    the torque cost (`gauss_newton_model` at z0), or None (other methods, or ``initial_model:
+    identity``).
+    """
+
+    problems: Problem
+    z0: jnp.ndarray
+    free: jnp.ndarray
+    coeffs_ls: jnp.ndarray
+    null: jnp.ndarray
+    initial: jnp.ndarray | None
+
+
 def _orthonormal_directions(null, funcs, mask):
     """One joint's null directions made orthonormal in q: ``(null (K+1, F), dirs (F, T), mask)``.
 
@@ -804,7 +823,7 @@ def _trust_region(
     Without ``exact`` (BFGS) no second derivatives of ``fun`` are taken. ``known(z (B, n)) ->
     (gradient (B, n), Hessian (B, n, n))``, optional, is a cheap part of ``fun`` (the joint-limit
     penalty, `penalty_model`: no dynamics): the model is its exact Hessian at the current point
-    plus a damped-BFGS model of the rest, which starts as ``initial(z0) -> (B, n, n)`` where
+    plus a damped-BFGS model of the rest, which starts as ``initial (B, n, n)`` where
     given (the Gauss-Newton matrix, `gauss_newton_model`, plus a small ridge) or else as a
     multiple of the identity (a first step of ``RADIUS_INIT`` along -g), and learns from the
     rest's gradient differences only (a structured quasi-Newton model: Dennis &
@@ -1009,7 +1028,7 @@ def _trust_region(
     if not exact:  # the BFGS model's learned part, the known part's gradient, the Newton step
         state.update(br=jnp.zeros((b, n, n), dtype), gk=jnp.zeros_like(z0), pn=jnp.zeros_like(z0))
         if initial is not None:
-            b0 = initial(z0)
+            b0 = initial
             scale = jnp.max(jnp.abs(jnp.diagonal(b0, axis1=1, axis2=2)), axis=1)
             state["b0"] = on_free(b0, GN_RIDGE * scale[:, None])
             state["b0_ok"] = jnp.all(jnp.isfinite(b0), axis=(1, 2)) & (scale > 0)
@@ -1103,20 +1122,18 @@ _SOLVERS: dict[str, Callable[..., _Result]] = {
 }
 
 
-def optimise_in_chunks(solve, problems, z0, free, max_batch: int | None) -> _Result:
-    """``solve(problems, z0, free) -> _Result`` over a batch of B problems, in equal chunks of at
-    most ``max_batch`` run one after another (``lax.map``), or at once where ``B <= max_batch``
-    (or it is None).
+def in_chunks(fn, args: tuple, max_batch: int | None):
+    """``fn(*args)`` over a batch of B rows, in equal chunks of at most ``max_batch`` rows run one
+    after another (``lax.map``), or at once where ``B <= max_batch`` (or it is None).
 
-    ``problems``: pytree of ``(B, ...)`` arrays; ``z0, free: (B, n)``. A problem's result does not
-    depend on the others in its batch (the solvers stop a converged problem where it is; only
-    rounding may differ between batch sizes), so the chunks' results, concatenated, are the
-    batch's. The last chunk is filled up with copies of the last problem, whose results are
-    dropped.
+    ``args``: pytrees of ``(B, ...)`` arrays (None for an absent one); ``fn`` returns a pytree
+    of ``(rows, ...)`` arrays whose rows depend on their own input rows only (up to rounding),
+    so the chunks' results, concatenated, are the batch's. The last chunk is filled up with
+    copies of the last row, whose results are dropped.
     """
-    b = z0.shape[0]
+    b = jax.tree_util.tree_leaves(args)[0].shape[0]
     if max_batch is None or b <= max_batch:
-        return solve(problems, z0, free)
+        return fn(*args)
     n_chunks = -(-b // max_batch)
     size = -(-b // n_chunks)
     pad = n_chunks * size - b
@@ -1125,42 +1142,32 @@ def optimise_in_chunks(solve, problems, z0, free, max_batch: int | None) -> _Res
         a = jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a
         return a.reshape(n_chunks, size, *a.shape[1:])
 
-    chunks = jax.tree_util.tree_map(split, (problems, z0, free))
-    res = jax.lax.map(lambda args: solve(*args), chunks)
-    return jax.tree_util.tree_map(lambda a: a.reshape(n_chunks * size, *a.shape[2:])[:b], res)
+    out = jax.lax.map(lambda chunk: fn(*chunk), jax.tree_util.tree_map(split, args))
+    return jax.tree_util.tree_map(lambda a: a.reshape(n_chunks * size, *a.shape[2:])[:b], out)
 
 
-def compile_optimisation(
-    basis: Basis,
-    boundary: Boundary,
-    dyn: Dynamics,
-    grid: TimeGrid,
-    lower,
-    upper,
-    settings: OptimSettings,
-) -> Optimised:
-    """The movement compiler via optimisation (paper sec. 2.2), pure and un-jitted.
+def optimise_in_chunks(solve, problems, z0, free, max_batch: int | None, initial=None) -> _Result:
+    """``solve(problems, z0, free, initial) -> _Result`` over a batch of B problems in chunks
+    (`in_chunks`): ``problems`` a pytree of ``(B, ...)`` arrays, ``z0, free: (B, n)``,
+    ``initial``: ``(B, n, n)`` or None. A problem's result does not depend on the others in its
+    batch (the solvers stop a converged problem where it is; only rounding may differ between
+    batch sizes)."""
+    return in_chunks(solve, (problems, z0, free, initial), max_batch)
 
-    ``basis``: C conditions with >= ``settings.n_components`` components (`basis.pca_basis`);
-    ``boundary``: `compile_interp.Boundary` of C conditions; ``lower``, ``upper``: ``(J,)`` joint
-    limits [rad]. Everything but ``basis`` and ``boundary`` is static. Use
-    `make_optimisation_compiler` for a jitted version, or call this inside a larger jit (the
-    evolution's generation step).
-    """
+
+def prepare_optimisation(
+    basis: Basis, boundary: Boundary, dyn: Dynamics, grid: TimeGrid, settings: OptimSettings
+) -> Prepared:
+    """The first half of `compile_optimisation`, pure and un-jitted: the reduced problems of C
+    conditions, the starts and BFGS's first model (`Prepared`). Its own program in a run's
+    generation step (`evolution.generation_stages`): compiled beside `optimise_prepared`, the
+    Gauss-Newton model's compile no longer waits for the optimiser's."""
     settings = settings.resolved()
-    k = settings.n_components
     dtype = basis.mean.dtype
-    lower = jnp.asarray(lower, dtype)
-    upper = jnp.asarray(upper, dtype)
-    lo, hi = lower + settings.limit_margin, upper - settings.limit_margin
     problem, coeffs_ls, null = reduced_problems(
-        basis, boundary, grid, k, settings.bc_leak, settings.max_free_per_joint,
-        settings.search_stride,
+        basis, boundary, grid, settings.n_components, settings.bc_leak,
+        settings.max_free_per_joint, settings.search_stride,
     )  # fmt: skip
-    weight = jnp.asarray(settings.limit_penalty, dtype)
-    search_value = make_search_value(dyn, lo, hi, weight, settings.method)
-    solver = _SOLVERS[settings.method]
-
     c, j = coeffs_ls.shape[:2]
     k = null.shape[-1]  # free directions per joint
     n_s = settings.n_starts
@@ -1172,8 +1179,40 @@ def compile_optimisation(
     probs = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * n_s, axis=0), problem)
     free = probs.mask.reshape(n_s * c, j * k)
     z0 = jnp.where(free, z_starts.reshape(n_s * c, j * k), 0.0)
+    initial = None
+    if settings.method == "bfgs" and settings.initial_model == "gauss-newton":
+        gn = functools.partial(gauss_newton_model, dyn, every=GN_NODE_STRIDE)
+        initial = in_chunks(gn, (probs, z0), settings.max_batch)
+    return Prepared(probs, z0, free, coeffs_ls, null, initial)
 
-    def solve(chunk: Problem, z0, free) -> _Result:
+
+def optimise_prepared(
+    prep: Prepared,
+    boundary: Boundary,
+    dyn: Dynamics,
+    grid: TimeGrid,
+    lower,
+    upper,
+    settings: OptimSettings,
+) -> Optimised:
+    """The second half of `compile_optimisation`, pure and un-jitted: the optimiser on the
+    problems of ``prep`` (`prepare_optimisation` with the same ``dyn``, ``grid`` and
+    ``settings``), each result's eq. 5 cost on the full grid and the best start per
+    condition."""
+    settings = settings.resolved()
+    dtype = prep.z0.dtype
+    lower = jnp.asarray(lower, dtype)
+    upper = jnp.asarray(upper, dtype)
+    lo, hi = lower + settings.limit_margin, upper - settings.limit_margin
+    weight = jnp.asarray(settings.limit_penalty, dtype)
+    search_value = make_search_value(dyn, lo, hi, weight, settings.method)
+    solver = _SOLVERS[settings.method]
+    c, j = prep.coeffs_ls.shape[:2]
+    k = prep.null.shape[-1]
+    n_s = settings.n_starts
+    probs = prep.problems
+
+    def solve(chunk: Problem, z0, free, initial) -> _Result:
         def fun(zf, i):
             prob = jax.tree_util.tree_map(lambda a: a[i], chunk)
             return search_value(zf.reshape(j, k), prob)
@@ -1181,12 +1220,9 @@ def compile_optimisation(
         if settings.method != "bfgs":
             return solver(fun, z0, free, settings)
         known = functools.partial(penalty_model, problems=chunk, lo=lo, hi=hi, weight=weight)
-        initial = None
-        if settings.initial_model == "gauss-newton":
-            initial = functools.partial(gauss_newton_model, dyn, chunk, every=GN_NODE_STRIDE)
         return solver(fun, z0, free, settings, known=known, initial=initial)
 
-    res = optimise_in_chunks(solve, probs, z0, free, settings.max_batch)
+    res = optimise_in_chunks(solve, probs, prep.z0, prep.free, settings.max_batch, prep.initial)
 
     def evaluate(zf, prob: Problem):
         z = zf.reshape(j, k)
@@ -1213,7 +1249,7 @@ def compile_optimisation(
 
     z = pick(results.z)
     q = pick(q_all)
-    coeffs = coeffs_ls + jnp.einsum("cjik,cjk->cji", null, z)
+    coeffs = prep.coeffs_ls + jnp.einsum("cjik,cjk->cji", prep.null, z)
     return Optimised(
         q=q,
         coeffs=coeffs,
@@ -1224,6 +1260,27 @@ def compile_optimisation(
         iterations=pick(results.iterations),
         converged=pick(results.converged),
     )
+
+
+def compile_optimisation(
+    basis: Basis,
+    boundary: Boundary,
+    dyn: Dynamics,
+    grid: TimeGrid,
+    lower,
+    upper,
+    settings: OptimSettings,
+) -> Optimised:
+    """The movement compiler via optimisation (paper sec. 2.2), pure and un-jitted:
+    `optimise_prepared` of `prepare_optimisation`.
+
+    ``basis``: C conditions with >= ``settings.n_components`` components (`basis.pca_basis`);
+    ``boundary``: `compile_interp.Boundary` of C conditions; ``lower``, ``upper``: ``(J,)`` joint
+    limits [rad]. Everything but ``basis`` and ``boundary`` is static. Use
+    `make_optimisation_compiler` for a jitted version, or call this inside a larger jit.
+    """
+    prep = prepare_optimisation(basis, boundary, dyn, grid, settings)
+    return optimise_prepared(prep, boundary, dyn, grid, lower, upper, settings)
 
 
 def cpu_fast_path(dyn: Dynamics, settings: OptimSettings) -> tuple[Dynamics, dict | None]:

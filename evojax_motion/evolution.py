@@ -10,6 +10,10 @@ the eq. 5 cost, a batched argmin; the human originals (slots ``0 .. n_human-1``)
 ``make_generation_step`` closes over the static pieces (dynamics, time grid, settings) and returns
 one jitted function ``step(db, conditions, generation) -> (db, GenerationStats)``: the whole
 generation (neighbours, PCA, optimisation, selection, metrics) is a single XLA program.
+`generation_stages` gives the same step as two programs, ``prepare`` (neighbours, PCA, the reduced
+problems, BFGS's first model) and ``finish`` (the optimiser, selection, metrics): a run compiles
+them side by side (`train.compile_generation_step`), which on 2 CPU cores shortens the wait for
+its first generation.
 """
 
 from __future__ import annotations
@@ -30,8 +34,11 @@ from evojax_motion.basis import (
 )
 from evojax_motion.compile_optim import (
     OptimSettings,
+    Prepared,
     cpu_fast_path,
-    make_optimisation_compiler,
+    optimise_prepared,
+    prepare_optimisation,
+    validate_limits,
 )
 from evojax_motion.database import EVOLVED, Database, count_human
 from evojax_motion.dynamics import Dynamics
@@ -317,7 +324,16 @@ def make_generation_step(*args, **kwargs):
     return jax.jit(step, compiler_options=options)
 
 
-def generation_step(
+class Staged(NamedTuple):
+    """What `generation_stages`' ``prepare`` hands to ``finish``: ``short (m,)`` bool, conditions
+    with fewer than k neighbours within the radius; ``prepared``: their `compile_optim.Prepared`
+    problems."""
+
+    short: jnp.ndarray
+    prepared: Prepared
+
+
+def generation_stages(
     dyn: Dynamics,
     grid: TimeGrid,
     lower,
@@ -327,20 +343,28 @@ def generation_step(
     optim_settings: OptimSettings,
     settings: EvolutionSettings,
 ):
-    """``(step, compiler_options)``: the un-jitted `make_generation_step` and the options of the
-    top-level jit that must run it (JAX accepts them only there; `parallel` jits it with
-    shardings, or inlines it per device)."""
+    """``(prepare, finish, compiler_options)``: the un-jitted generation step in two stages,
+    ``prepare(db, conditions) -> Staged`` (neighbours, PCA, `compile_optim.prepare_optimisation`)
+    and ``finish(db, conditions, generation, staged) -> (db, GenerationStats)`` (the optimiser,
+    survivor selection, metrics), and the options of the top-level jits that must run them.
+    ``finish(db, conditions, generation, prepare(db, conditions))`` is `generation_step`'s
+    step."""
     dyn, options = cpu_fast_path(dyn, optim_settings)
-    compile_opt = make_optimisation_compiler(
-        dyn, grid, lower, upper, optim_settings, fast_path=False
-    )
+    lower = np.asarray(lower, np.float64)
+    upper = np.asarray(upper, np.float64)
+    validate_limits(lower, upper, lower.shape[0] if lower.ndim == 1 else -1)
     n_components = optim_settings.n_components
 
-    def step(db: Database, conditions, generation):
+    def prepare(db: Database, conditions) -> Staged:
         nb = search_neighbours(db, conditions, basis_settings)
         basis = pca_basis(jnp.asarray(db.q), jnp.asarray(db.duration), nb, n_components)
-        off = compile_opt(basis, conditions.boundary)
+        prep = prepare_optimisation(basis, conditions.boundary, dyn, grid, optim_settings)
+        return Staged(short=nb.short, prepared=prep)
 
+    def finish(db: Database, conditions, generation, staged: Staged):
+        off = optimise_prepared(
+            staged.prepared, conditions.boundary, dyn, grid, lower, upper, optim_settings
+        )
         finite = off.finite & jnp.isfinite(off.cost)
         in_range = finite & off.within_limits
         pos_err, vel_err = boundary_errors(grid, off.q, conditions.boundary)
@@ -368,11 +392,34 @@ def generation_step(
             n_rejected_limits=jnp.sum(finite & ~in_range).astype(jnp.int32),
             n_rejected_bc=jnp.sum(in_range & ~accept).astype(jnp.int32),
             n_valid=jnp.sum(sel.valid).astype(jnp.int32),
-            n_short=jnp.sum(nb.short).astype(jnp.int32),
+            n_short=jnp.sum(staged.short).astype(jnp.int32),
             bc_residual_max=jnp.max(jnp.where(finite, pos_err, 0.0)),
             bc_velocity_residual_max=jnp.max(jnp.where(finite, vel_err, 0.0)),
             converged_fraction=jnp.mean(jnp.asarray(off.converged, jnp.float32)),
         )
         return new_db, stats
 
-    return exact_matmuls(step), options
+    return exact_matmuls(prepare), exact_matmuls(finish), options
+
+
+def generation_step(
+    dyn: Dynamics,
+    grid: TimeGrid,
+    lower,
+    upper,
+    n_human: int,
+    basis_settings: BasisSettings,
+    optim_settings: OptimSettings,
+    settings: EvolutionSettings,
+):
+    """``(step, compiler_options)``: the un-jitted `make_generation_step` (`generation_stages`
+    as one function) and the options of the top-level jit that must run it (JAX accepts them
+    only there; `parallel` jits it with shardings, or inlines it per device)."""
+    prepare, finish, options = generation_stages(
+        dyn, grid, lower, upper, n_human, basis_settings, optim_settings, settings
+    )
+
+    def step(db: Database, conditions, generation):
+        return finish(db, conditions, generation, prepare(db, conditions))
+
+    return step, options

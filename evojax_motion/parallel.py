@@ -60,7 +60,7 @@ from jax.sharding import PartitionSpec as P
 from evojax_motion.compile_optim import cpu_fast_path
 from evojax_motion.database import Database
 from evojax_motion.errors import UserError
-from evojax_motion.evolution import GenerationStats, generation_step
+from evojax_motion.evolution import GenerationStats, generation_stages, generation_step
 from evojax_motion.precision import exact_matmuls
 
 CONDITION_AXIS = "conditions"
@@ -227,6 +227,40 @@ def unpad_stats(stats: GenerationStats, m: int, extra: int) -> GenerationStats:
     )
 
 
+def _placed(fn, mesh: Mesh, options: dict | None):
+    """``fn`` jitted with its inputs and outputs replicated over ``mesh`` (on one device: placed
+    there) and the program ``options``."""
+    replicated = NamedSharding(mesh, P())
+    return jax.jit(fn, in_shardings=replicated, out_shardings=replicated, compiler_options=options)
+
+
+def one_device_stages(
+    dyn,
+    grid,
+    lower,
+    upper,
+    n_human: int,
+    basis_settings,
+    optim_settings,
+    settings,
+    devices: int | Sequence | None = None,
+):
+    """``(prepare, finish, compiler_options)``: `evolution.generation_stages` jitted and placed on
+    the one device that ``devices`` names (`resolve_devices`), as `sharded_generation_step` places
+    the one-device step; ``finish(db, conditions, generation, prepare(db, conditions))`` is that
+    step. `UserError` where ``devices`` names several."""
+    mesh = condition_mesh(devices)
+    if mesh.devices.size != 1:
+        raise UserError(
+            f"parallel.devices: the generation's two stages run on one device, got "
+            f"{mesh.devices.size}"
+        )
+    prepare, finish, options = generation_stages(
+        dyn, grid, lower, upper, n_human, basis_settings, optim_settings, settings
+    )
+    return _placed(prepare, mesh, options), _placed(finish, mesh, options), options
+
+
 def make_sharded_generation_step(*args, **kwargs):
     """The jitted step of `sharded_generation_step` (same arguments)."""
     return sharded_generation_step(*args, **kwargs)[0]
@@ -267,10 +301,7 @@ def sharded_generation_step(
     # The step's program options (CPU fast path) go on the top-level jit that runs or inlines it.
     if n_dev == 1:
         plain, options = generation_step(*fixed, n_human, *stage_settings)
-        jitted = jax.jit(
-            plain, in_shardings=replicated, out_shardings=replicated, compiler_options=options
-        )
-        return jitted, options
+        return _placed(plain, mesh, options), options
     _, options = cpu_fast_path(dyn, optim_settings)  # the inner steps are built when traced
 
     def step(db: Database, conditions, generation):

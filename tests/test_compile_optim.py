@@ -297,29 +297,32 @@ def test_second_call_does_not_recompile(setup):
 
 
 def test_chunks_cover_the_batch_in_order():
-    """`optimise_in_chunks` hands each problem to exactly one chunk of at most ``max_batch``
-    and returns the results in the batch's order (a solve that tags each row with its problem)."""
+    """`optimise_in_chunks` hands each problem (and its initial model, where given) to exactly
+    one chunk of at most ``max_batch`` and returns the results in the batch's order (a solve
+    that tags each row with its problem)."""
     sizes = []
 
-    def solve(problems, z0, free):
+    def solve(problems, z0, free, initial):
         sizes.append(z0.shape[0])
-        return _Result(
-            z=z0 + problems[:, None], f=problems, iterations=free[:, 0], converged=free[:, 1]
-        )
+        tag = problems if initial is None else problems + initial[:, 0, 0]
+        return _Result(z=z0 + tag[:, None], f=tag, iterations=free[:, 0], converged=free[:, 1])
 
     b, n = 11, 2
     problems = jnp.arange(b, dtype=jnp.float32) * 10
     z0 = jnp.ones((b, n))
     free = jnp.tile(jnp.arange(b)[:, None] % 3 == jnp.arange(n), (1, 1))
-    for max_batch, chunk in [(None, b), (b, b), (4, 4), (5, 4), (10, 6), (1, 1)]:
-        sizes.clear()
-        chunked = functools.partial(optimise_in_chunks, solve, max_batch=max_batch)
-        res = jax.jit(chunked)(problems, z0, free)
-        assert sizes == [chunk], (max_batch, sizes)
-        np.testing.assert_array_equal(np.asarray(res.z), np.asarray(z0 + problems[:, None]))
-        np.testing.assert_array_equal(np.asarray(res.f), np.asarray(problems))
-        np.testing.assert_array_equal(np.asarray(res.iterations), np.asarray(free[:, 0]))
-        np.testing.assert_array_equal(np.asarray(res.converged), np.asarray(free[:, 1]))
+    initial = jnp.arange(b, dtype=jnp.float32)[:, None, None] * 1000 * jnp.ones((1, n, n))
+    for model in (None, initial):
+        tag = problems if model is None else problems + model[:, 0, 0]
+        for max_batch, chunk in [(None, b), (b, b), (4, 4), (5, 4), (10, 6), (1, 1)]:
+            sizes.clear()
+            chunked = functools.partial(optimise_in_chunks, solve, max_batch=max_batch)
+            res = jax.jit(chunked)(problems, z0, free, initial=model)
+            assert sizes == [chunk], (max_batch, sizes)
+            np.testing.assert_array_equal(np.asarray(res.z), np.asarray(z0 + tag[:, None]))
+            np.testing.assert_array_equal(np.asarray(res.f), np.asarray(tag))
+            np.testing.assert_array_equal(np.asarray(res.iterations), np.asarray(free[:, 0]))
+            np.testing.assert_array_equal(np.asarray(res.converged), np.asarray(free[:, 1]))
 
 
 def test_accelerator_loop_in_chunks_gives_the_whole_batch_results(setup, monkeypatch):

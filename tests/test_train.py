@@ -238,6 +238,59 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     assert signature(expected_inputs(cfg, robot)) == signature((db, listed)) != actual
 
 
+# Staged against one-program step: the same trajectories; the float32 eq. 5 costs may be summed in
+# another order (tiny config: 2.6e-6 relative; paper scale, 8 generations: bit-identical).
+STAGED_COST_RTOL = 1e-5
+
+
+@pytest.mark.parametrize("method", ["adam", "bfgs"])  # bfgs: its Gauss-Newton model in prepare
+def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch, method):
+    """`train.compile_generation_step` on one device: its two stages compiled side by side give
+    the one-program step's generations (database and statistics, 2 generations), its cost
+    analysis is the two programs' together, and a second compile traces neither stage again
+    (the traced programs are kept)."""
+    import jax
+
+    from evojax_motion import compile_cache
+    from evojax_motion.config import load_config
+    from evojax_motion.database import count_human
+    from evojax_motion.evolution import make_generation_step
+    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.train import StagedStep, compile_generation_step, initial_state
+    from evojax_motion.workflow import make_robot_dynamics
+
+    assert compile_cache.traced_cache_dir() is not None  # conftest's session cache
+    cfg = load_config(TINY, [f"compiler.method={method}"])
+    robot, dyn = make_robot_dynamics(cfg)
+    db, conditions, *_ = initial_state(cfg, robot, dyn)
+    staged = compile_generation_step(cfg, robot, dyn, db, conditions)
+    assert isinstance(staged, StagedStep)
+    one = make_generation_step(
+        dyn, make_time_grid(db.q.shape[1]), robot.lower, robot.upper, count_human(db),
+        cfg.basis, cfg.compiler, cfg.evolution,
+    )  # fmt: skip
+    db_b = db
+    for g in (1, 2):  # each from the same database: a cost's last bit can decide a survivor
+        db_a, stats_a = staged(db_b, conditions, np.int32(g))
+        db_b, stats_b = one(db_b, conditions, np.int32(g))
+        for a, b in zip(db_a._replace(cost=0), db_b._replace(cost=0), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        for a, b in zip((db_a.cost, *stats_a), (db_b.cost, *stats_b), strict=True):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=STAGED_COST_RTOL)
+    assert int(stats_a.n_valid) > 0  # the generations did fill slots
+
+    flops = [s.cost_analysis()["flops"] for s in (staged.prepare, staged.finish)]
+    assert staged.cost_analysis()["flops"] == pytest.approx(sum(flops))
+    assert min(flops) > 0
+
+    exports = []
+    monkeypatch.setattr(jax.export, "export", lambda *a, **k: exports.append(a))
+    again = compile_generation_step(cfg, robot, dyn, db, conditions)
+    assert exports == []
+    first = staged(db, conditions, np.int32(1))[0]
+    np.testing.assert_array_equal(again(db, conditions, np.int32(1))[0].q, first.q)
+
+
 def _db(path):
     from evojax_motion.database import load_database
 
