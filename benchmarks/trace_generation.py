@@ -15,6 +15,10 @@ generations, then traces ``--traced`` more and summarises the trace (`summarise_
   from the compiled program's HLO, `trace_summary.kernel_sources`), which says where kernels
   are worth fusing (e.g. the optimiser's algebra against its dynamics).
 
+A step of two programs (`train.StagedStep`, one device) is traced program by program, each with
+its own HLO (the two name different kernels alike), and summarised together
+(`trace_summary.merge_stages`; each program's summary under ``stages``).
+
 ``busy_us / span_us`` near 1 says the device is the bound; far below, the host (launching or
 preparing work) leaves the device waiting. The timing runs without the profiler (it costs the
 host time). On CPU only the timing runs (its trace holds no device kernels). XLA settings
@@ -44,12 +48,27 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402
 from generations_per_sec import build, run_generations  # noqa: E402
-from trace_summary import read_trace, summarise_trace  # noqa: E402
+from trace_summary import merge_stages, read_trace, summarise_trace  # noqa: E402
 
 from evojax_motion.config import load_config  # noqa: E402
-from evojax_motion.train import compile_generation_step, generation_inputs  # noqa: E402
+from evojax_motion.train import (  # noqa: E402
+    StagedStep,
+    compile_generation_step,
+    generation_inputs,
+)
 
 WARM_UP = 3  # generations run before the timed ones
+
+
+def traced(program, call, first: int, n: int) -> dict:
+    """`summarise_trace` of ``call(g)`` for generations ``first .. first + n - 1`` (each run to its
+    end) under `jax.profiler`; ``program``: the compiled program that runs, whose HLO names each
+    kernel's source (`kernel_sources`)."""
+    with tempfile.TemporaryDirectory(prefix="trace_generation-") as tmp:
+        with jax.profiler.trace(tmp, create_perfetto_trace=True):
+            for g in range(first, first + n):
+                jax.block_until_ready(call(g))
+        return summarise_trace(read_trace(Path(tmp)), n, program.as_text())
 
 
 def main(argv=None) -> dict:
@@ -75,11 +94,16 @@ def main(argv=None) -> dict:
     db, seconds, _, _ = run_generations(step, db, conds, 1 + WARM_UP, args.generations)
     trace = None  # a CPU trace holds no device kernels to summarise
     if args.traced > 0 and jax.default_backend() != "cpu":
-        with tempfile.TemporaryDirectory(prefix="trace_generation-") as tmp:
-            with jax.profiler.trace(tmp, create_perfetto_trace=True):
-                run_generations(step, db, conds, 1 + WARM_UP + args.generations, args.traced)
-            # the compiled program's HLO names each kernel's source (`kernel_sources`)
-            trace = summarise_trace(read_trace(Path(tmp)), args.traced, step.as_text())
+        first = 1 + WARM_UP + args.generations
+        if isinstance(step, StagedStep):  # each program traced on its own, with its own HLO
+            staged = step.prepare(db, conds)
+            runs = {
+                "prepare": (step.prepare, lambda g: step.prepare(db, conds)),
+                "finish": (step.finish, lambda g: step.finish(db, conds, np.int32(g), staged)),
+            }
+            trace = merge_stages({k: traced(*v, first, args.traced) for k, v in runs.items()})
+        else:
+            trace = traced(step, lambda g: step(db, conds, np.int32(g)), first, args.traced)
     median = float(np.median(seconds))
     result = {
         "machine": machine_info(),

@@ -91,6 +91,36 @@ def summarise_trace(events: list[dict], generations: int, hlo_text: str | None =
     }
 
 
+def merge_stages(stages: dict[str, dict]) -> dict:
+    """One summary of programs traced one after another (``{name: summarise_trace(...)}``, the
+    same generations each): kernels, busy time and idle time per generation added up,
+    ``by_source`` merged by source (each program's kernels traced to its own HLO: two programs
+    may name different kernels alike), and each program's own summary under ``stages``. The
+    span is the sum of the programs' spans (they are traced apart, so the gap between them is
+    not measured)."""
+    sums = ("kernels_per_generation", "busy_us_per_generation", "span_us_per_generation",
+            "idle_us_per_generation")  # fmt: skip
+    out: dict = {k: sum(st[k] for st in stages.values()) for k in sums}
+    out["busy_fraction"] = (
+        out["busy_us_per_generation"] / out["span_us_per_generation"]
+        if out["span_us_per_generation"] > 0
+        else float("nan")
+    )
+    if all("by_source" in st for st in stages.values()):
+        by_source: dict = {}
+        for st in stages.values():
+            for row in st["by_source"]:
+                entry = by_source.setdefault(row["source"], [0.0, 0.0])
+                entry[0] += row["kernels_per_generation"]
+                entry[1] += row["us_per_generation"]
+        out["by_source"] = [
+            {"source": k, "kernels_per_generation": n, "us_per_generation": round(t, 1)}
+            for k, (n, t) in sorted(by_source.items(), key=lambda kv: -kv[1][1])
+        ]
+    out["stages"] = stages
+    return out
+
+
 NOT_IN_HLO = "(not in the HLO)"  # copies, library kernels (e.g. cuBLAS) named otherwise
 NO_SOURCE = "(no project frame)"
 _COMPUTATION = re.compile(r"^(?:ENTRY )?%([\w.\-]+) .*\{$")

@@ -527,8 +527,8 @@ def generation_inputs(cfg: Config, db, conditions):
 class StagedStep:
     """``step(db, conditions, generation) -> (db, GenerationStats)``: the generation step as its
     two compiled stages (`evolution.generation_stages`), ``finish`` on ``prepare``'s result.
-    ``cost_analysis()`` and ``as_text()`` are the two programs' together, as of one compiled
-    step."""
+    ``cost_analysis()`` is the two programs' together, as of one compiled step; each program's
+    own (``as_text()``, a trace's kernels) is that of ``prepare`` or ``finish``."""
 
     def __init__(self, prepare, finish):
         self.prepare, self.finish = prepare, finish
@@ -545,9 +545,6 @@ class StagedStep:
                 total[k] = total.get(k, 0.0) + v
         return total
 
-    def as_text(self) -> str:
-        return self.prepare.as_text() + "\n" + self.finish.as_text()
-
 
 def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     """The run's generation step, compiled for ``db`` and ``conditions``:
@@ -556,9 +553,9 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     Conditions sharded over ``cfg.parallel.devices`` (all by default). On one device, a
     `StagedStep`: its two stages compiled side by side (``prepare`` in a `Background` thread
     while ``finish`` is traced and compiled here), each through `compile_cache.compile_traced`,
-    so that with JAX's compilation cache on a later process skips tracing them too. On 2 CPU
-    cores the paper-scale step alone compiled in 11.0 s against 13.8 s as one program
-    (`benchmarks/changes.md`, twelfth session).
+    so that with JAX's compilation cache on a later process skips tracing them too. Paper scale,
+    traced and compiled: 10.3-10.6 against 13.3-13.6 s as one program on 2 CPU cores, 27-29
+    against 40-45 s on an H200 (`benchmarks/changes.md`, twelfth session).
     """
     from evojax_motion.compile_cache import Background, compile_traced, lower_traced
     from evojax_motion.database import count_human

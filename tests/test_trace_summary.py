@@ -179,3 +179,30 @@ def test_kernel_time_by_source():
         (NOT_IN_HLO, 0.5, 0.5),
     ]
     assert "by_source" not in summarise_trace(events, generations=2)
+
+
+def test_programs_traced_apart_are_summed_and_their_sources_merged():
+    """`merge_stages`: kernels and times per generation add up, sources merge across programs
+    (each traced to its own HLO, even where both name a kernel alike), each program's summary
+    is kept."""
+    from benchmarks.trace_summary import merge_stages
+
+    a = [*_meta(), *(_x(GPU, COMPUTE, *k) for k in [("loop_a_1", 0, 10), ("b", 12, 4)])]
+    b = [*_meta(), *(_x(GPU, COMPUTE, *k) for k in [("loop_a_1", 0, 6), ("memcpy", 8, 2)])]
+    other_hlo = _HLO.replace('3 "objective"', '3 "other"')  # its "loop_a_1" is another kernel
+    stages = {
+        "prepare": summarise_trace(a, generations=1, hlo_text=_HLO),
+        "finish": summarise_trace(b, generations=1, hlo_text=other_hlo),
+    }
+    m = merge_stages(stages)
+    assert m["kernels_per_generation"] == 4
+    assert m["busy_us_per_generation"] == 22
+    assert m["span_us_per_generation"] == 16 + 10
+    assert m["idle_us_per_generation"] == 2 + 2
+    rows = {
+        r["source"]: (r["kernels_per_generation"], r["us_per_generation"]) for r in m["by_source"]
+    }
+    assert rows == {"compile_optim:objective": (1, 10.0), "compile_optim:other": (1, 6.0),
+                    "compile_optim:solve": (1, 4.0), NOT_IN_HLO: (1, 2.0)}  # fmt: skip
+    assert m["stages"] == stages
+    assert "by_source" not in merge_stages({"a": summarise_trace(a, generations=1)})
