@@ -93,8 +93,9 @@ def summarise_trace(events: list[dict], generations: int, hlo_text: str | None =
 
 def merge_stages(stages: dict[str, dict]) -> dict:
     """One summary of programs traced one after another (``{name: summarise_trace(...)}``, the
-    same generations each): kernels, busy time and idle time per generation added up,
-    ``by_source`` merged by source (each program's kernels traced to its own HLO: two programs
+    same generations each): kernels, busy time and idle time per generation added up, the
+    programs' largest kernels together (``top_kernels``, named ``program:kernel``), ``by_source``
+    merged by source (each program's kernels traced to its own HLO: two programs
     may name different kernels alike), and each program's own summary under ``stages``. The
     span is the sum of the programs' spans (they are traced apart, so the gap between them is
     not measured)."""
@@ -106,6 +107,12 @@ def merge_stages(stages: dict[str, dict]) -> dict:
         if out["span_us_per_generation"] > 0
         else float("nan")
     )
+    kernels = [
+        dict(k, name=f"{name}:{k['name']}")
+        for name, st in stages.items()
+        for k in st["top_kernels"]
+    ]
+    out["top_kernels"] = sorted(kernels, key=lambda k: -k["mean_us"] * k["per_generation"])[:TOP]
     if all("by_source" in st for st in stages.values()):
         by_source: dict = {}
         for st in stages.values():

@@ -205,4 +205,8 @@ def test_programs_traced_apart_are_summed_and_their_sources_merged():
     assert rows == {"compile_optim:objective": (1, 10.0), "compile_optim:other": (1, 6.0),
                     "compile_optim:solve": (1, 4.0), NOT_IN_HLO: (1, 2.0)}  # fmt: skip
     assert m["stages"] == stages
+    assert [(k["name"], k["mean_us"]) for k in m["top_kernels"]] == [
+        ("prepare:loop_a_1", 10.0), ("finish:loop_a_1", 6.0), ("prepare:b", 4.0),
+        ("finish:memcpy", 2.0),
+    ]  # fmt: skip
     assert "by_source" not in merge_stages({"a": summarise_trace(a, generations=1)})
