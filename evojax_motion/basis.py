@@ -507,22 +507,50 @@ def _pca_rows_svd(centred: jnp.ndarray, n_components: int):
     return sv[:avail], u[:, :avail].T
 
 
+def _gram_two_pass(x: jnp.ndarray, eigh):
+    """``(left (r, r), z (r, c))`` for ``x (r, c)``: its left singular vectors (columns) and the
+    rows ``s_i v_i`` (singular value times right singular vector), both unordered, from two
+    passes of its ``r x r`` row Gram: ``x x^T = U diag(s^2) U^T`` rotates the rows, ``y = U^T
+    x``; the Gram of ``y`` (nearly diagonal) rotates them again, ``z = W^T y``, and ``left = U
+    W``. The second Gram is formed from the rotated rows, so its entries err by rounding relative
+    to ``s_i s_j`` rather than to ``s_0^2``: as accurate as a (backward stable) SVD of x, with no
+    ``sqrt(eps)`` floor on the small singular values. ``eigh``: a symmetric eigensolver
+    returning ``(values, vectors)`` (`jnp.linalg.eigh` or `jacobi_eigh`)."""
+    _, u = eigh(_dot(x, x.T))
+    y = _dot(u.T, x)
+    _, w = eigh(_dot(y, y.T))
+    return _dot(u, w), _dot(w.T, y)
+
+
+def small_right_svd(a: jnp.ndarray, two_pass_gram: bool = False):
+    """``(s (n,), vt (n, n))`` of a small ``a (m, n)`` with ``m >= n``: singular values
+    (descending) and right singular vectors (rows), as ``jnp.linalg.svd(a,
+    full_matrices=False)[1:]``.
+
+    `small_svd`'s (LAPACK on CPU, one-sided Jacobi on accelerators), or with ``two_pass_gram``
+    on accelerators (`jacobi_backend`, ``n <= JACOBI_MAX_N``) the two Gram passes of
+    `_gram_two_pass` on the columns' ``n x n`` Gram with `jacobi_eigh`: as accurate, with no
+    reduction over the m rows per Jacobi round, but more rounds. For the optimiser's BC solve
+    (100 x 5 matrices per condition and joint, `compile_interp.GRAM_SVD_MIN_MATRICES`).
+    """
+    m, n = a.shape
+    if not (two_pass_gram and jacobi_backend() and m >= n and n <= JACOBI_MAX_N):
+        _, s, vt = small_svd(a, full_matrices=False)
+        return s, vt
+    left, z = _gram_two_pass(a.T, jacobi_eigh)
+    s, order = jax.lax.top_k(jnp.sqrt(jnp.sum(z * z, axis=1)), n)
+    return s, left[:, order].T
+
+
 def _pca_rows_gram(centred: jnp.ndarray, n_components: int):
-    """As `_pca_rows_svd`, through the ``k x k`` Gram matrix (k ~ 10 rows), in two passes:
-    ``X X^T = U diag(s^2) U^T`` rotates the rows, ``Y = U^T X``; the Gram of ``Y`` (nearly
-    diagonal) rotates them again, ``Z = W^T Y``, whose rows are ``s_i v_i``. The second Gram is
-    formed from the rotated rows, so its entries err by rounding relative to ``s_i s_j`` rather
-    than to ``s_0^2``: as accurate as a (backward stable) SVD of X, with no ``sqrt(eps)`` floor
-    on the small singular values.
+    """As `_pca_rows_svd`, through the ``k x k`` Gram matrix (k ~ 10 rows) in two passes
+    (`_gram_two_pass`: as accurate as a backward stable SVD of X).
 
     For accelerators: under vmap each pass is one batched symmetric eigensolver call (cuSOLVER's
     batched Jacobi on GPUs). For 700,000 Gram matrices of 10 x 100 trajectories (100,000 online
     targets) on an H100 this takes 48 ms, the same two passes with `jacobi_eigh` 137 ms
     (``benchmarks/small_eigh.py``, ``benchmarks/results/small_eigh_gpu.json``)."""
-    _, u = jnp.linalg.eigh(_dot(centred, centred.T))
-    y = _dot(u.T, centred)
-    _, w = jnp.linalg.eigh(_dot(y, y.T))
-    z = _dot(w.T, y)  # (k, T) rows s_i v_i, unordered
+    _, z = _gram_two_pass(centred, jnp.linalg.eigh)  # (k, T) rows s_i v_i, unordered
     sv, order = jax.lax.top_k(jnp.sqrt(jnp.sum(z * z, axis=1)), min(z.shape[0], n_components))
     return sv, z[order] / jnp.where(sv > 0, sv, 1.0)[:, None]
 

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.basis import Basis, gram_svd, jacobi_backend, small_svd
+from evojax_motion.basis import Basis, gram_svd, jacobi_backend, small_right_svd, small_svd
 from evojax_motion.errors import UserError
 from evojax_motion.timegrid import TimeGrid
 
@@ -68,6 +68,13 @@ STRICT_RANK_RTOL = 1e-5
 # dimensions per condition (one per joint) at 2e-4 against 8.0 at 1e-3 (end velocities then drift
 # up to 2e-3 rad/s per rad).
 BC_LEAK = 2e-4
+# From this many BC systems (conditions x joints) in one solve, the optimisation compiler's rule
+# finds each basis' q-orthonormal coordinates by `basis.small_right_svd`'s two Gram passes instead
+# of the one-sided Jacobi SVD, on accelerators. One H100, paper configuration, the generation at
+# 10,000 / 30,000 / 100,000 conditions (70,000+ systems): 9.5 / 8.3 / 9 % faster; at 1,000
+# (7,000 systems) 7 % slower, its Jacobi rounds being more kernels there (`benchmarks/changes.md`,
+# twelfth session; between the two sizes not measured).
+GRAM_SVD_MIN_MATRICES = 65_536
 # Floor of the constant's prior scale [rad], so that a joint no neighbour moves keeps a usable
 # constant (its column would otherwise be zero and no BC could be met).
 MIN_CONSTANT_SCALE = 1e-3
@@ -196,15 +203,17 @@ def end_slopes(d1_ends, f):
 
 
 def _joint_system(
-    funcs, mean, scale, q0, qf, qd0, qdf, duration, d1_ends, rank_rtol, leak, jacobi=False
-):
+    funcs, mean, scale, q0, qf, qd0, qdf, duration, d1_ends, rank_rtol, leak, jacobi=False,
+    two_pass_gram=False,
+):  # fmt: skip
     """One joint's BC solve. ``funcs (K+1, T)``, ``mean (T,)``, ``scale (K+1,)``,
     ``d1_ends (2, T)`` (the first and last rows of the derivative operator).
 
     ``leak`` None: interpolation (rank in prior units, positions before velocities); else the
     optimisation compiler's rule (module docstring); ``jacobi``: the interpolation rule's SVDs by
-    `basis.gram_svd` (see `_svd`). Returns ``coeffs (K+1,)``,
-    ``null (K+1, K)``, ``null_mask (K,)``, ``rank ()``.
+    `basis.gram_svd` (see `_svd`); ``two_pass_gram``: the optimisation rule's coordinates by
+    `basis.small_right_svd`'s two Gram passes (`GRAM_SVD_MIN_MATRICES`). Returns ``coeffs
+    (K+1,)``, ``null (K+1, K)``, ``null_mask (K,)``, ``rank ()``.
     """
     n, t = funcs.shape
     rows = jnp.concatenate([jnp.stack([funcs[:, 0], funcs[:, -1]]), end_slopes(d1_ends, funcs)])
@@ -242,8 +251,9 @@ def _joint_system(
         # that are orthonormal in q (|y| = RMS of the q change over the samples), a direction
         # binds when moving q by 1 rad RMS changes its BC by more than `leak`. Which solution
         # among those is a prior one: the minimum norm in prior units, as for interpolation.
-        # `small_svd`: no solver call per matrix on accelerators (one-sided Jacobi, as accurate).
-        _, sg, wt = small_svd(funcs.T / jnp.sqrt(jnp.asarray(t, funcs.dtype)), False)
+        # No solver call per matrix on accelerators (`small_right_svd`, `small_svd`: Jacobi
+        # rotations, as accurate as LAPACK's SVD; ``two_pass_gram``: `GRAM_SVD_MIN_MATRICES`).
+        sg, wt = small_right_svd(funcs.T / jnp.sqrt(jnp.asarray(t, funcs.dtype)), two_pass_gram)
         span = sg > STRICT_RANK_RTOL * sg[0]
         to_c = wt.T * jnp.where(span, 1.0 / jnp.where(span, sg, 1.0), 0.0)[None, :]  # c = to_c y
         u, sq, vt = small_svd(rows @ to_c, full_matrices=True)
@@ -289,6 +299,7 @@ def solve_boundary(
         rank_rtol=rank_rtol,
         leak=leak,
         jacobi=leak is None and jacobi_backend(),
+        two_pass_gram=funcs.shape[0] * funcs.shape[1] >= GRAM_SVD_MIN_MATRICES,
     )
     coeffs, null, null_mask, rank = jax.vmap(jax.vmap(system))(
         funcs,

@@ -21,6 +21,7 @@ from evojax_motion.basis import (
     select_neighbours,
     select_neighbours_among,
     small_eigh,
+    small_right_svd,
     small_svd,
     validate_neighbour_database,
     validate_targets,
@@ -271,6 +272,39 @@ def test_jacobi_svd_matches_numpy(shape):
     rebuilt = np.einsum("bik,bk,bkj->bij", u, s, vt[:, :k])
     err = np.abs(rebuilt - a).max(axis=(1, 2)) / s_ref[:, 0]
     assert err.max() < TOL_JACOBI_SVD * n
+
+
+@pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "gram"])
+@pytest.mark.parametrize("shape", [(100, 5), (30, 3), (6, 6), (50, 1)])
+def test_small_right_svd_matches_numpy(shape, jacobi, monkeypatch):
+    """`small_right_svd` on both paths (the two-pass Gram one of accelerators, and LAPACK) on
+    random, rank-deficient and graded (1 .. 1e-4) matrices: every singular value relative to
+    itself within `TOL_JACOBI_SVD_REL` (what the one-sided Jacobi SVD meets, which this path
+    replaces in the BC solve), right singular vectors orthonormal, ``a V = U S`` with orthogonal
+    ``U``, each vector of a distinct singular value numpy's up to its sign."""
+    monkeypatch.setattr(basis_module, "jacobi_backend", lambda: jacobi)
+    m, n = shape
+    rng = np.random.default_rng(m + n)
+    a = rng.standard_normal((30, m, n))
+    if n > 1:
+        a[:10, :, -1] = a[:10, :, 0]  # a repeated column: rank-deficient
+    uu = np.linalg.qr(rng.standard_normal((10, m, m)))[0][..., :n]
+    vv = np.linalg.qr(rng.standard_normal((10, n, n)))[0]
+    a[10:20] = np.einsum("bik,k,bjk->bij", uu, np.logspace(0, -4, n), vv)  # graded
+    a = a.astype(np.float32)
+    svd = jax.vmap(lambda x: small_right_svd(x, two_pass_gram=True))
+    s, vt = (np.asarray(x, np.float64) for x in jax.jit(svd)(a))
+    _, s_ref, vt_ref = np.linalg.svd(a.astype(np.float64), full_matrices=False)
+    assert s.shape == (30, n) and vt.shape == (30, n, n)
+    np.testing.assert_allclose(s / s_ref[:, :1], s_ref / s_ref[:, :1], atol=TOL_JACOBI_SVD)
+    rel = np.abs(s[10:20] - s_ref[10:20]) / s_ref[10:20]
+    assert rel.max() < TOL_JACOBI_SVD_REL
+    assert np.abs(np.einsum("bki,bkj->bij", vt, vt) - np.eye(n)).max() < TOL_ORTHO * n
+    av = np.einsum("bij,bkj->bik", a.astype(np.float64), vt)  # columns s_i u_i
+    np.testing.assert_allclose(np.linalg.norm(av, axis=1) / s_ref[:, :1], s / s_ref[:, :1],
+                               atol=TOL_JACOBI_SVD)  # fmt: skip
+    graded = np.abs(np.sum(vt[10:20] * vt_ref[10:20], axis=2))  # distinct values: vector by vector
+    np.testing.assert_allclose(graded, 1.0, atol=TOL_JACOBI_SVD_REL)
 
 
 def test_jacobi_svd_converges_on_a_paper_bc_matrix():

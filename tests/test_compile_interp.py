@@ -226,3 +226,43 @@ def test_validate_boundary():
     for bc, msg in cases:
         with pytest.raises(UserError, match=msg):
             validate_boundary(bc, 3, -np.ones(3), np.ones(3))
+
+
+# The optimisation rule's BC solve with the two Gram passes against the one-sided Jacobi SVD
+# (float32): coefficients relative to their largest, and the null spaces' projectors.
+TOL_GRAM_SWITCH = 1e-5  # measured 1.2e-7 and 3.5e-7
+
+
+def test_bc_solve_gives_the_same_problems_past_the_gram_switch(grid, monkeypatch):
+    """`compile_interp.GRAM_SVD_MIN_MATRICES`: the optimisation rule's BC solve (``leak``) as on
+    accelerators, with `basis.small_right_svd`'s two Gram passes (threshold reached) and with the
+    one-sided Jacobi SVD (not reached): the same ranks, free directions, coefficients and null
+    spaces (their orthonormal bases may differ)."""
+    import evojax_motion.basis as basis_module
+    import evojax_motion.compile_interp as ci
+
+    monkeypatch.setattr(basis_module, "jacobi_backend", lambda: True)
+    rng = np.random.default_rng(11)
+    k = 5  # 6 functions, 4 BCs: free directions too
+    basis = random_basis(rng, C, T, J, k)
+    bc = Boundary(
+        *(jnp.asarray(rng.uniform(-0.5, 0.5, (C, J)), jnp.float32) for _ in range(4)),
+        duration=jnp.ones(C, jnp.float32),
+    )
+    out = {}
+    for name, threshold in (("gram", 0), ("jacobi", 10**9)):
+        monkeypatch.setattr(ci, "GRAM_SVD_MIN_MATRICES", threshold)
+        out[name] = jax.jit(lambda b, c: ci.solve_boundary(b, c, grid, k, leak=ci.BC_LEAK))(
+            basis, bc
+        )
+    gram, ref = out["gram"], out["jacobi"]
+    assert not np.array_equal(gram.null, ref.null)  # the two paths did run (rounding differs)
+    np.testing.assert_array_equal(gram.rank, ref.rank)
+    np.testing.assert_array_equal(gram.null_mask, ref.null_mask)
+    assert 0 < int(np.asarray(ref.null_mask).sum()) < ref.null_mask.size  # both kinds occur
+    scale = np.abs(np.asarray(ref.coeffs)).max()
+    np.testing.assert_allclose(gram.coeffs, ref.coeffs, atol=TOL_GRAM_SWITCH * scale)
+    for a, b in ((np.asarray(gram.null, np.float64), np.asarray(ref.null, np.float64)),):
+        pa = np.einsum("cjik,cjlk->cjil", a, np.linalg.pinv(a).swapaxes(-1, -2))
+        pb = np.einsum("cjik,cjlk->cjil", b, np.linalg.pinv(b).swapaxes(-1, -2))
+        np.testing.assert_allclose(pa, pb, atol=TOL_GRAM_SWITCH)
