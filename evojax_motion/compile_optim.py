@@ -1312,15 +1312,22 @@ def make_optimisation_compiler(
     compile through `cpu_fast_path` (False: ``dyn`` as given, XLA's default options).
     """
     settings = OptimSettings() if settings is None else settings
-    lower = np.asarray(lower, np.float64)
-    upper = np.asarray(upper, np.float64)
-    validate_limits(lower, upper, lower.shape[0] if lower.ndim == 1 else -1)
+    lower, upper = checked_limits(lower, upper)
     dyn, options = cpu_fast_path(dyn, settings) if fast_path else (dyn, None)
 
     def compile_batch(basis: Basis, boundary: Boundary) -> Optimised:
         return compile_optimisation(basis, boundary, dyn, grid, lower, upper, settings)
 
     return jax.jit(exact_matmuls(compile_batch), compiler_options=options)
+
+
+def checked_limits(lower, upper) -> tuple[np.ndarray, np.ndarray]:
+    """``(lower, upper)`` as float64 ``(J,)`` arrays, validated (`validate_limits`), for a
+    compiler that closes over them."""
+    lower = np.asarray(lower, np.float64)
+    upper = np.asarray(upper, np.float64)
+    validate_limits(lower, upper, lower.shape[0] if lower.ndim == 1 else -1)
+    return lower, upper
 
 
 def validate_limits(lower, upper, n_joints: int, where: str = "joint limits") -> None:

@@ -35,10 +35,10 @@ from evojax_motion.basis import (
 from evojax_motion.compile_optim import (
     OptimSettings,
     Prepared,
+    checked_limits,
     cpu_fast_path,
     optimise_prepared,
     prepare_optimisation,
-    validate_limits,
 )
 from evojax_motion.database import EVOLVED, Database, count_human
 from evojax_motion.dynamics import Dynamics
@@ -297,7 +297,7 @@ def search_neighbours(db: Database, conditions, basis_settings: BasisSettings):
 
 def make_generation_step(*args, **kwargs):
     """One generation as one jitted function ``step(db, conditions, generation)``; arguments
-    as `generation_step` (``dyn, grid, lower, upper, n_human, basis_settings, optim_settings,
+    as `generation_stages` (``dyn, grid, lower, upper, n_human, basis_settings, optim_settings,
     settings``).
 
     ``db``: ``Database`` of capacity ``n_human + m`` (`init_evolved_slots`); ``conditions``:
@@ -350,9 +350,7 @@ def generation_stages(
     ``finish(db, conditions, generation, prepare(db, conditions))`` is `generation_step`'s
     step."""
     dyn, options = cpu_fast_path(dyn, optim_settings)
-    lower = np.asarray(lower, np.float64)
-    upper = np.asarray(upper, np.float64)
-    validate_limits(lower, upper, lower.shape[0] if lower.ndim == 1 else -1)
+    lower, upper = checked_limits(lower, upper)
     n_components = optim_settings.n_components
 
     def prepare(db: Database, conditions) -> Staged:
@@ -402,22 +400,11 @@ def generation_stages(
     return exact_matmuls(prepare), exact_matmuls(finish), options
 
 
-def generation_step(
-    dyn: Dynamics,
-    grid: TimeGrid,
-    lower,
-    upper,
-    n_human: int,
-    basis_settings: BasisSettings,
-    optim_settings: OptimSettings,
-    settings: EvolutionSettings,
-):
+def generation_step(*args, **kwargs):
     """``(step, compiler_options)``: the un-jitted `make_generation_step` (`generation_stages`
-    as one function) and the options of the top-level jit that must run it (JAX accepts them
-    only there; `parallel` jits it with shardings, or inlines it per device)."""
-    prepare, finish, options = generation_stages(
-        dyn, grid, lower, upper, n_human, basis_settings, optim_settings, settings
-    )
+    as one function; same arguments) and the options of the top-level jit that must run it (JAX
+    accepts them only there; `parallel` jits it with shardings, or inlines it per device)."""
+    prepare, finish, options = generation_stages(*args, **kwargs)
 
     def step(db: Database, conditions, generation):
         return finish(db, conditions, generation, prepare(db, conditions))

@@ -234,30 +234,18 @@ def _placed(fn, mesh: Mesh, options: dict | None):
     return jax.jit(fn, in_shardings=replicated, out_shardings=replicated, compiler_options=options)
 
 
-def one_device_stages(
-    dyn,
-    grid,
-    lower,
-    upper,
-    n_human: int,
-    basis_settings,
-    optim_settings,
-    settings,
-    devices: int | Sequence | None = None,
-):
-    """``(prepare, finish, compiler_options)``: `evolution.generation_stages` jitted and placed on
-    the one device that ``devices`` names (`resolve_devices`), as `sharded_generation_step` places
-    the one-device step; ``finish(db, conditions, generation, prepare(db, conditions))`` is that
-    step. `UserError` where ``devices`` names several."""
+def one_device_stages(*args, devices: int | Sequence | None = None):
+    """``(prepare, finish, compiler_options)``: `evolution.generation_stages` (same arguments)
+    jitted and placed on the one device that ``devices`` names (`resolve_devices`), as
+    `sharded_generation_step` places the one-device step; ``finish(db, conditions, generation,
+    prepare(db, conditions))`` is that step. `UserError` where ``devices`` names several."""
     mesh = condition_mesh(devices)
     if mesh.devices.size != 1:
         raise UserError(
             f"parallel.devices: the generation's two stages run on one device, got "
             f"{mesh.devices.size}"
         )
-    prepare, finish, options = generation_stages(
-        dyn, grid, lower, upper, n_human, basis_settings, optim_settings, settings
-    )
+    prepare, finish, options = generation_stages(*args)
     return _placed(prepare, mesh, options), _placed(finish, mesh, options), options
 
 

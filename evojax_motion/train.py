@@ -553,9 +553,9 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     Conditions sharded over ``cfg.parallel.devices`` (all by default). On one device, a
     `StagedStep`: its two stages compiled side by side (``prepare`` in a `Background` thread
     while ``finish`` is traced and compiled here), each through `compile_cache.compile_traced`,
-    so that with JAX's compilation cache on a later process skips tracing them too. Paper scale,
-    traced and compiled: 10.3-10.6 against 13.3-13.6 s as one program on 2 CPU cores, 27-29
-    against 40-45 s on an H200 (`benchmarks/changes.md`, twelfth session).
+    so that with JAX's compilation cache on a later process skips tracing them too. Traced and
+    compiled: 10.3-10.6 against 13.3-13.6 s as one program at paper scale on 2 CPU cores, 27-29
+    against 40-45 s at 1,000 conditions on an H200 (`benchmarks/changes.md`, twelfth session).
     """
     from evojax_motion.compile_cache import Background, compile_traced, lower_traced
     from evojax_motion.database import count_human
