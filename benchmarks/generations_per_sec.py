@@ -56,6 +56,8 @@ from evojax_motion import evolution  # noqa: E402
 from evojax_motion.basis import pca_basis, select_neighbours, select_neighbours_among  # noqa: E402
 from evojax_motion.compile_optim import make_optimisation_compiler  # noqa: E402
 from evojax_motion.config import config_from_dict, config_to_dict, load_config  # noqa: E402
+from evojax_motion.database import count_human  # noqa: E402
+from evojax_motion.evolution import make_generation_step  # noqa: E402
 from evojax_motion.timegrid import make_time_grid  # noqa: E402
 from evojax_motion.train import (  # noqa: E402
     compile_generation_step,
@@ -107,11 +109,23 @@ def run_generations(compiled, db, conds, first: int, n: int):
     return db, seconds, stats, valid
 
 
-def time_generations(cfg, robot, dyn, db, conds, generations: int) -> dict:
+def compile_one_program(cfg, robot, dyn, db, conds):
+    """The generation step as one XLA program (`evolution.make_generation_step`, as the sharded
+    step runs it on each device), compiled for ``db`` and ``conds``; `train` compiles two on one
+    device (`train.compile_generation_step`)."""
+    grid = make_time_grid(db.q.shape[1])
+    step = make_generation_step(dyn, grid, robot.lower, robot.upper, count_human(db),
+                                cfg.basis, cfg.compiler, cfg.evolution)  # fmt: skip
+    return step.lower(db, conds, np.asarray(1, np.int32)).compile()
+
+
+def time_generations(cfg, robot, dyn, db, conds, generations: int, one_program=False) -> dict:
     """Compile the generation step ahead of time (as `train` does: with JAX's persistent cache on,
-    the traced program is reused too), then time ``generations`` generations."""
+    the traced program is reused too; or as one program, `compile_one_program`), then time
+    ``generations`` generations."""
     t0 = time.perf_counter()
-    compiled = compile_generation_step(cfg, robot, dyn, db, conds)  # as `train` compiles it
+    compile_step = compile_one_program if one_program else compile_generation_step
+    compiled = compile_step(cfg, robot, dyn, db, conds)
     compile_s = time.perf_counter() - t0
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
@@ -326,6 +340,11 @@ def markdown(result: dict) -> str:
         f"Machine: {m['device_kind']} ({m['platform']}, {cpu_label(m)}), jax {m['jax']}, "
         f"{m['date']}. Command: `{m['command']}`",
     ]
+    if m.get("xla_flags"):
+        lines[0] += f" XLA_FLAGS: `{m['xla_flags']}`."
+    if result.get("one_program"):
+        lines[0] += (" The step compiled as one XLA program (`evolution.make_generation_step`), "
+                     "not as `train`'s two.")  # fmt: skip
     if result["sweep"]:
         lines += [
             "",
@@ -411,13 +430,20 @@ def main(argv=None) -> None:
         help="search each condition's neighbours in the whole database at every size "
         "(default: candidate lists from evolution.SEARCH_CANDIDATES_MIN_CONDITIONS conditions)",
     )
+    p.add_argument(
+        "--one-program",
+        action="store_true",
+        help="time the step compiled as one XLA program (evolution.make_generation_step) "
+        "instead of train's two (prepare, finish)",
+    )
     p.add_argument("--tag", default="", help="suffix of the JSON name (default: platform)")
     p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args(argv)
     if args.warm_runs < 1:
         p.error(f"--warm-runs: expected an integer >= 1, got {args.warm_runs}")
     result = {"machine": machine_info(), "config": args.config, "overrides": args.set,
-              "sweep": [], "demos_from_file": args.demos_from_file}  # fmt: skip
+              "sweep": [], "demos_from_file": args.demos_from_file,
+              "one_program": args.one_program}  # fmt: skip
     if args.first_generation_only:
         result["first_generation"] = first_generation_times(
             args.config, args.conditions, args.set, args.demos_from_file, args.warm_runs
@@ -432,14 +458,14 @@ def main(argv=None) -> None:
     paper = None
     for c in counts:
         state = build(cfg, c)
-        r = time_generations(*state, args.generations)
+        r = time_generations(*state, args.generations, args.one_program)
         result["sweep"].append(r)
         print(json.dumps({k: v for k, v in r.items() if k not in ("seconds", "db_cost_mean")}))
         if c == args.conditions or paper is None:
             paper = state
     for t in [int(x) for x in args.sweep_samples.split(",") if x]:
         cfg_t = config_from_dict(config_to_dict(cfg), [f"demos.samples={t}"])
-        r = time_generations(*build(cfg_t, args.conditions), args.generations)
+        r = time_generations(*build(cfg_t, args.conditions), args.generations, args.one_program)
         result["sweep"].append(r)
         print(json.dumps({k: v for k, v in r.items() if k not in ("seconds", "db_cost_mean")}))
     ours_s = next(

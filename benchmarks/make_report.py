@@ -249,6 +249,14 @@ def main() -> None:
         ["conditions", "samples", "overrides", "stages", "iterations_median", "iterations_max"],
     )
     lines += trace_section()
+    lines += markdown_tables(
+        "linearity_*.md", "Linearity in the number of conditions (`benchmarks/linearity.py`)"
+    )
+    lines += markdown_tables(
+        "cholesky_kernels_*.md",
+        "The optimiser's Cholesky solve: XLA against a Pallas kernel "
+        "(`benchmarks/cholesky_kernels.py`)",
+    )
     lines += json_summaries(
         "profile_online_*.json",
         "Where an online batch's time goes (`benchmarks/profile_online.py`)",
