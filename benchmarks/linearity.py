@@ -75,7 +75,10 @@ def parts(d: dict) -> tuple[dict[str, float], dict[str, float]]:
     """Device time per generation [us] of the parts of a `trace_generation` result:
     ``(groups, functions)``. Groups: each stage; the dynamics (`DYNAMICS` sources); the rest of
     the last stage (the optimiser's own arithmetic); the time the device is not busy (timed
-    generation minus busy); and the last two together. Functions: ``by_source``."""
+    generation minus busy); and the last two together. Functions: ``by_source``. The trace
+    attributes kernels to functions, not stages, so the dynamics' few kernels in earlier stages
+    (the Gauss-Newton start's) are subtracted from the last stage too: its rest is slightly
+    underestimated, and the ratio without it slightly overestimated."""
     t = d["trace"]
     stages = t.get("stages") or {"generation": t}
     groups = {f"stage `{k}`": v["busy_us_per_generation"] for k, v in stages.items()}
