@@ -119,6 +119,8 @@ def runs(d: dict) -> list[dict]:
 
 
 def analyse(results: list[dict], max_batch: int | None, tolerance: float) -> dict:
+    """The fit (`fit_latency`), its `latency_bound` and the `what_ifs` of the smallest against
+    the largest size, for timed runs (`runs`) at two or more condition counts."""
     res = sorted(results, key=lambda d: d["conditions"])
     m = [d["conditions"] for d in res]
     ch = [batch_chunks(x, max_batch) for x in m]
@@ -196,8 +198,16 @@ def main(argv=None) -> dict:
     p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args(argv)
     sources = [str(Path(t)) for t in args.results]
-    r = analyse([x for t in sources for x in runs(json.loads(Path(t).read_text()))],
-                args.max_batch, args.tolerance)  # fmt: skip
+    found = []
+    for path in sources:
+        try:
+            found += runs(json.loads(Path(path).read_text()))
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            p.error(f"{path}: expected a trace_generation or generations_per_sec result ({e!r})")
+    try:
+        r = analyse(found, args.max_batch, args.tolerance)
+    except (ValueError, KeyError, TypeError) as e:
+        p.error(f"expected results at two or more condition counts of one machine ({e!r})")
     r["traces"] = sources
     md = markdown(r, sources, args.rows)
     print(md)
