@@ -34,6 +34,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402
+from result_files import machine_line, write_result  # noqa: E402
 
 from evojax_motion.compile_optim import _cholesky_solve  # noqa: E402
 
@@ -167,8 +168,7 @@ def main(argv=None) -> dict:
     result = {"machine": machine_info(), "n": args.n, "passes": args.passes, "rows": rows}
     m = result["machine"]
     md = [
-        f"Machine: {m.get('device_kind')} ({m['platform']}), jax {m['jax']}, {m['date']}. "
-        f"Command: `{m['command']}`. {args.n} unknowns, {args.passes} dependent solves a call.",
+        f"{machine_line(m)}. {args.n} unknowns, {args.passes} dependent solves a call.",
         "",
         "| problems | solver | us / solve | compile s | max error vs float64 |",
         "|---:|---|---:|---:|---:|",
@@ -178,11 +178,8 @@ def main(argv=None) -> dict:
             for r in rows
         ),
     ]
-    out = Path(args.out_dir) / f"cholesky_kernels_{args.tag or m['platform']}"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text("\n".join(md) + "\n")
-    print("\n".join(md))
+    stem = Path(args.out_dir) / f"cholesky_kernels_{args.tag or m['platform']}"
+    write_result(stem, result, "\n".join(md))
     return result
 
 

@@ -33,6 +33,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from result_files import write_result  # noqa: E402
 
 DYNAMICS = "dynamics_rnea:"  # sources of the rigid-body dynamics' kernels (`trace_summary`)
 
@@ -210,12 +213,7 @@ def main(argv=None) -> dict:
         p.error(f"expected results at two or more condition counts of one machine ({e!r})")
     r["traces"] = sources
     md = markdown(r, sources, args.rows)
-    print(md)
-    out = Path(args.out_dir) / f"linearity_{args.tag or 'result'}"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(r, indent=2) + "\n")
-    out.with_suffix(".md").write_text(md)
-    print(f"written: {out}.json, .md")
+    write_result(Path(args.out_dir) / f"linearity_{args.tag or 'result'}", r, md)
     return r
 
 

@@ -253,6 +253,9 @@ def main() -> None:
         "linearity_*.md", "Linearity in the number of conditions (`benchmarks/linearity.py`)"
     )
     lines += markdown_tables(
+        "train_loop_*.md", "A training run's own cost per generation (`benchmarks/train_loop.py`)"
+    )
+    lines += markdown_tables(
         "cholesky_kernels_*.md",
         "The optimiser's Cholesky solve: XLA against a Pallas kernel "
         "(`benchmarks/cholesky_kernels.py`)",

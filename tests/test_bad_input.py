@@ -191,7 +191,7 @@ POSITIVE = [
     "evolution.min_neighbours",
     "evolution.candidates_per_condition", "evolution.ik_tolerance", "evolution.duration",
     "evolution.bc_tolerance", "evolution.bc_velocity_tolerance", "train.max_to_keep",
-    "parallel.devices",
+    "train.checkpoint_every", "parallel.devices",
 ]  # fmt: skip
 NON_NEGATIVE = [
     "demos.duration_noise", "demos.asymmetry_std", "demos.curvature_std",

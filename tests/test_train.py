@@ -595,6 +595,58 @@ def test_damaged_latest_checkpoint_falls_back(tiny_run, tmp_path, capsys):
         assert getattr(ref, key).tobytes() == getattr(got, key).tobytes(), key
 
 
+@pytest.mark.slow
+def test_sparse_checkpoints_resume_to_the_same_run(tiny_run, tmp_path):
+    """``train.checkpoint_every: 3`` over 4 generations: checkpoints after generations 0, 3 and
+    4 only, the same database and metrics as checkpointing every generation; a run stopped after
+    generation 4 but before its checkpoint resumes from 3, recomputes 4 and ends the same."""
+    from evojax_motion.config import load_config
+    from evojax_motion.train import CHECKPOINT_DIR, run_training
+
+    ref_out, _, _ = tiny_run
+    sparse = ["train.checkpoint_every=3", "train.max_to_keep=5", "train.plots=false"]
+    cfg = load_config(TINY, sparse)
+    out = tmp_path / "run"
+    run_training(cfg, out, progress=False)
+
+    def steps():
+        return sorted(int(p.name) for p in (out / CHECKPOINT_DIR).iterdir() if p.name.isdigit())
+
+    assert steps() == [0, 3, 4]
+    _assert_same_run(ref_out, out)
+    import shutil
+
+    shutil.rmtree(out / CHECKPOINT_DIR / "4")
+    (out / "db_final.npz").unlink()
+    summary = run_training(cfg, out, resume=True, progress=False)
+    assert summary["resumed_from"] == 3
+    assert summary["checkpoint_problems"] == []
+    assert steps() == [0, 3, 4]
+    _assert_same_run(ref_out, out)
+
+
+def test_a_run_folder_of_an_older_version_resumes_with_new_keys_at_their_defaults(tmp_path):
+    """A run's config.yaml written before a setting existed (here ``train.checkpoint_every``)
+    still matches the same config with that setting at its default; at another value it is
+    another config."""
+    import yaml
+
+    from evojax_motion.config import config_to_dict, load_config
+    from evojax_motion.train import TrainSettings
+
+    default = TrainSettings().checkpoint_every
+    mine = config_to_dict(load_config(TINY, [f"train.checkpoint_every={default}"]))
+    older = yaml.safe_load(yaml.safe_dump(mine))
+    del older["train"]["checkpoint_every"]
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.yaml").write_text(yaml.safe_dump(older))
+    assert check_run_dir(out, mine, resume=True) is True
+    other = config_to_dict(load_config(TINY, [f"train.checkpoint_every={default + 1}"]))
+    with pytest.raises(UserError, match=r"train\.checkpoint_every"):
+        check_run_dir(out, other, resume=True)
+
+
 # ------------------------------------------------------------------------------ bad input
 
 
@@ -641,7 +693,15 @@ def test_cli_refuses_another_configs_run(tiny_run, capsys):
 
 
 @pytest.mark.parametrize(
-    "field, value", [("max_to_keep", 1), ("plot_condition", -1), ("plot_condition", 1.5)]
+    "field, value",
+    [
+        ("max_to_keep", 1),
+        ("checkpoint_every", 0),
+        ("checkpoint_every", True),
+        ("checkpoint_every", 2.0),
+        ("plot_condition", -1),
+        ("plot_condition", 1.5),
+    ],
 )
 def test_train_settings_reject_bad_values(field, value):
     from evojax_motion.train import TrainSettings

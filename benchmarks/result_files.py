@@ -1,0 +1,22 @@
+"""What the newer benchmark scripts share: their machine line and how they write a result."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def machine_line(m: dict) -> str:
+    """``Machine: <device> (<platform>), jax <v>, <date>. Command: `...` `` of a `machine_info`."""
+    return (
+        f"Machine: {m.get('device_kind')} ({m['platform']}), jax {m['jax']}, {m['date']}. "
+        f"Command: `{m['command']}`"
+    )
+
+
+def write_result(stem: Path, result: dict, markdown: str) -> None:
+    """``<stem>.json`` (``result``) and ``<stem>.md`` (``markdown``, also printed)."""
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    stem.with_name(stem.name + ".json").write_text(json.dumps(result, indent=2) + "\n")
+    stem.with_name(stem.name + ".md").write_text(markdown.rstrip("\n") + "\n")
+    print(markdown)
