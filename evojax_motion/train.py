@@ -51,7 +51,8 @@ CHECKPOINT_DIR, PLOT_DIR, SUMMARY_FILE = "checkpoints", "plots", "summary.json"
 DB_INITIAL, DB_GEN1, DB_FINAL = "db_initial.npz", "db_gen1.npz", "db_final.npz"
 METRIC_FIELDS = (
     "generation",
-    "seconds",  # the generation's execution time
+    "seconds",  # wall time from the previous generation's result (or the loop's start) to this
+    # one's: the generation's execution, overlapped with writing the previous one's files
     "finished_at",  # Unix time [s] at its end (time to first generation, gaps on resume)
     "offspring_cost_mean",
     "db_cost_mean",
@@ -78,7 +79,7 @@ class TrainSettings:
       (>= 1); a resumed run restarts from the newest one and computes the generations after it
       again (to the same results). A checkpoint is 30-150 ms of orbax writes, more than a
       paper-scale generation on a GPU (~8 ms): on one H100 a run checkpointing every
-      generation made 6.2 generations/s, every 10th 62.6 (`benchmarks/train_loop.py`).
+      generation made 6.6 generations/s, every 10th 84 (`benchmarks/train_loop.py`).
     - ``plot_condition``: index of the condition drawn in ``plots/joint_angles.png`` (Fig. 8);
       ``null``: the one whose cost fell most from generation 1 to the last.
     - ``plots``: write the figures.
@@ -392,7 +393,8 @@ def run_training(
     Returns the summary (also written to ``summary.json`` and printed): generations, eq. 5 cost
     and torque sum of generation 1 and of the last one with the reduction in %, the final
     ``human_deviation_deg``, the human-only baseline (`human_only_baseline`), seconds per
-    generation (execution; compile and setup times separate), paths.
+    generation (wall time from one generation's result to the next: its execution, overlapped
+    with the previous generation's files; compile and setup times separate), paths.
     Raises ``UserError`` before writing anything when ``out_dir`` is not usable (see
     `check_run_dir`), the demonstrations cannot be read or the condition set cannot be drawn.
     """
@@ -478,18 +480,40 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     )
     resident = stays_on_device(cfg)
     db_in, conditions_in = generation_inputs(cfg, db, conditions)
+
+    def launch(g: int, db_in) -> tuple:
+        """``(pending, error)``: generation ``g`` queued on the device (``(db, stats)``, not
+        waited for; None past the last generation) or the error queueing it raised."""
+        if g > evo.generations:
+            return None, None
+        try:
+            return compiled(db_in, conditions_in, np.asarray(g, np.int32)), None
+        except Exception as e:  # raised by the caller once the previous generation is saved
+            return None, e
+
     try:
+        # Generation g + 1 is queued before generation g's files are written: the device
+        # computes it while the host writes (on a GPU, a paper-scale generation takes less time
+        # than its files). An error queueing it is raised once g's files are written.
+        pending, failed = launch(start + 1, db_in)
+        t0 = time.perf_counter()
         for g in range(start + 1, evo.generations + 1):
-            t0 = time.perf_counter()
-            db_new, stats = compiled(db_in, conditions_in, np.asarray(g, np.int32))
+            if failed is not None:
+                raise failed
+            db_new, stats = pending
             db_new = jax.block_until_ready(db_new)
+            if resident:
+                pending, failed = launch(g + 1, db_new)
             db = _numpy_db(db_new)  # for the files
-            db_in = db_new if resident else db
+            if not resident:
+                pending, failed = launch(g + 1, db)
+            now = time.perf_counter()
             row = {
                 "generation": g,
-                "seconds": round(time.perf_counter() - t0, 4),
+                "seconds": round(now - t0, 4),
                 "finished_at": round(time.time(), 3),
             }
+            t0 = now
             row.update({k: _json_value(v) for k, v in stats._asdict().items()})
             metrics.append(row)
             if g == 1:  # kept for Fig. 8 (first vs last generation); written before checkpoint 1

@@ -18,11 +18,9 @@ def test_loop_times_average_the_checkpointed_generations_in():
     got = loop_times(rows)
     # Intervals 2..6 end with generations 2..6: (11 + 40 + 11 + 11 + 40) / 5 = 22.6 ms.
     assert got["wall_s"] == pytest.approx(0.0226)
-    assert got["step_s"] == pytest.approx(0.010)
-    assert got["loop_s"] == pytest.approx(0.0126)
     assert got["generations_per_s"] == pytest.approx(1 / 0.0226)
 
 
 def test_loop_times_need_two_generations():
     with pytest.raises(ValueError, match="two or more"):
-        loop_times([{"seconds": 0.01, "finished_at": 1.0}])
+        loop_times([{"finished_at": 1.0}])
