@@ -625,6 +625,41 @@ def test_sparse_checkpoints_resume_to_the_same_run(tiny_run, tmp_path):
     _assert_same_run(ref_out, out)
 
 
+@pytest.mark.slow
+def test_an_error_queueing_the_next_generation_comes_after_the_files_of_the_last(
+    tiny_run, tmp_path, monkeypatch
+):
+    """`train` queues generation g + 1 before writing generation g's files; where queueing it
+    fails, generation g's metrics and checkpoint are written first, then the error is raised,
+    and a resume continues from g to the uninterrupted run's results."""
+    from evojax_motion import train
+    from evojax_motion.config import load_config
+
+    real = train.compile_generation_step
+
+    def failing_at_3(*args):
+        step = real(*args)
+
+        def call(db, conditions, generation):
+            if int(generation) == 3:
+                raise RuntimeError("queueing generation 3 failed")
+            return step(db, conditions, generation)
+
+        return call
+
+    monkeypatch.setattr(train, "compile_generation_step", failing_at_3)
+    cfg = load_config(TINY, ["train.plots=false"])
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="generation 3"):
+        train.run_training(cfg, out, progress=False)
+    assert [r["generation"] for r in _metrics(out)] == [1, 2]
+    assert (out / train.CHECKPOINT_DIR / "2").is_dir()
+    monkeypatch.setattr(train, "compile_generation_step", real)
+    summary = train.run_training(cfg, out, resume=True, progress=False)
+    assert summary["resumed_from"] == 2
+    _assert_same_run(tiny_run[0], out)
+
+
 def test_a_run_folder_of_an_older_version_resumes_with_new_keys_at_their_defaults(tmp_path):
     """A run's config.yaml written before a setting existed (here ``train.checkpoint_every``)
     still matches the same config with that setting at its default; at another value it is
