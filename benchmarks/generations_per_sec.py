@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402  (one definition for all benchmarks)
 from make_report import cpu_label  # noqa: E402
+from result_files import write_result  # noqa: E402
 
 from evojax_motion import evolution  # noqa: E402
 from evojax_motion.basis import pca_basis, select_neighbours, select_neighbours_among  # noqa: E402
@@ -496,13 +497,9 @@ def main(argv=None) -> None:
 
 def _write(result: dict, args) -> None:
     tag = args.tag or result["machine"]["platform"]
-    out = Path(args.out_dir) / f"generations_per_sec_{tag}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    table = markdown(result)
-    out.with_suffix(".md").write_text(table + "\n")
-    print(table)
-    print(f"\nwritten: {out}")
+    stem = Path(args.out_dir) / f"generations_per_sec_{tag}"
+    write_result(stem, result, markdown(result))
+    print(f"\nwritten: {stem}.json")
 
 
 if __name__ == "__main__":

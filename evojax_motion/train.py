@@ -77,9 +77,10 @@ class TrainSettings:
     - ``max_to_keep``: checkpoints kept (>= 2, so a damaged latest one has a predecessor).
     - ``checkpoint_every``: a checkpoint after every this many generations and after the last
       (>= 1); a resumed run restarts from the newest one and computes the generations after it
-      again (to the same results). A checkpoint is 30-150 ms of orbax writes, more than a
-      paper-scale generation on a GPU (~8 ms): on one H100 a run checkpointing every
-      generation made 6.6 generations/s, every 10th 84 (`benchmarks/train_loop.py`).
+      again (to the same results). With a checkpoint after every generation, a generation's
+      files took 44 ms on 2 CPU cores and 145 ms on one H100 machine, more than a paper-scale
+      generation on a GPU (~8 ms): there a run checkpointing every generation made 6.6
+      generations/s, every 10th 84 (`benchmarks/train_loop.py`).
     - ``plot_condition``: index of the condition drawn in ``plots/joint_angles.png`` (Fig. 8);
       ``null``: the one whose cost fell most from generation 1 to the last.
     - ``plots``: write the figures.
