@@ -18,7 +18,7 @@ Reads `trace_generation.py` results at several condition counts (same machine, s
 
 Usage:
     cd benchmarks/results
-    python ../linearity.py trace_generation_gpu_h100_now_{1000,10000,100000}.json --tag gpu_h100
+    python ../linearity.py trace_generation_gpu_h100_{1000,10000,100000}.json --tag gpu_h100
 Writes ``benchmarks/results/linearity_<tag>.json`` and ``.md``.
 """
 
