@@ -9,7 +9,7 @@ kernel, one thread per problem, the factor held in registers. Both run in a loop
 with the compile time and the largest error against a float64 NumPy solve of the same systems.
 
 Not used by the package: on an H100 the kernel solved 2.4x faster, but Triton took 16-20 s to
-compile it (`benchmarks/changes.md`, thirteenth session). On CPU the kernel runs in Pallas'
+compile it (CHANGELOG.md). On CPU the kernel runs in Pallas'
 interpreter (a correctness check only: its timings mean nothing).
 
 Usage:

@@ -139,7 +139,7 @@ def _processor() -> str:
 
 def cpu_model() -> str:
     """The CPU's model name (Linux: ``/proc/cpuinfo``), else `_processor`: timings on
-    CPUs of the same core count differ by model (`benchmarks/changes.md`, ninth session)."""
+    CPUs of the same core count differ by model (CHANGELOG.md)."""
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):

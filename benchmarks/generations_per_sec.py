@@ -223,7 +223,7 @@ def _slices(tree, parts: int):
 
 # Math libraries single-threaded in the pool's workers: with their default (a thread per core),
 # two workers' OpenBLAS threads contend for 2 cores and the pool ran ~2x slower than one process
-# (2 CPU cores, 32 conditions, 2026-11-25: analytic SLSQP 0.068 s per condition pooled against
+# (2 CPU cores, 32 conditions: analytic SLSQP 0.068 s per condition pooled against
 # 0.034 sequential; single-threaded 0.0122 against 0.0241), as a user tuning a pool sets them.
 WORKER_THREADS_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 

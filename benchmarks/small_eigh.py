@@ -10,7 +10,7 @@ The online query and the generation step decompose one ``k x k`` Gram matrix per
   GPUs);
 - ``pca_rows_gram``: the PCA's two-pass Gram decomposition (`basis._pca_rows_gram`, what the
   accelerator path runs) and ``pca_rows_jacobi_eigh``, the same two passes with `jacobi_eigh`
-  (6 and 2 sweeps: the accelerator path before 2026-11-24);
+  (6 and 2 sweeps: an earlier accelerator path);
 
 and the largest singular-value difference between the two PCA variants (relative to s_0).
 

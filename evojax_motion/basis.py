@@ -301,12 +301,12 @@ def select_neighbours_among(
 # Symmetric eigenproblems up to this size are solved by `jacobi_eigh` (elementwise code, batched
 # by vmap and fused by XLA); larger ones by `jnp.linalg.eigh` (a solver call per matrix on GPUs).
 JACOBI_MAX_N = 12
-# Parallel Jacobi sweeps from scratch (quadratic convergence; float32 random symmetric matrices
+# Parallel Jacobi sweeps from the identity (quadratic convergence; float32 random symmetric matrices
 # reach rounding level after 3 sweeps at n <= 5 and 5 at n = 10): up to n = 6, and above.
 JACOBI_SWEEPS_SMALL = 4
 JACOBI_SWEEPS = 6
 # One-sided Jacobi (`jacobi_svd`) up to n = 6: one sweep more. On the paper's BC solves (100
-# conditions x 7 joints, T = 100, K = 4; `scratch` comparison with a float64 solve, 2026-11-25)
+# conditions x 7 joints, T = 100, K = 4; compared with a float64 solve)
 # 4 sweeps left start trajectories up to 8.4e-3 rad off the float64 ones, 5 as close as LAPACK
 # (1.5e-4 rad): the BC rows in q-orthonormal coordinates are graded over four orders (the slope
 # rows near `BC_LEAK`), and after 4 sweeps their left singular vectors were orthonormal only to
@@ -501,7 +501,7 @@ def _pca_rows_svd(centred: jnp.ndarray, n_components: int):
     """Leading singular values ``(K',)`` and right singular vectors ``(K', T)``, ``K' = min(k,
     K)``, of ``centred (k, T)`` by LAPACK (CPU): the left singular vectors of its transpose,
     since LAPACK's path for a tall matrix is the faster one (a paper-scale generation's 2,100
-    matrices of 10 x 100 on 2 CPU cores: 43 against 59 ms, `benchmarks/changes.md`)."""
+    matrices of 10 x 100 on 2 CPU cores: 43 against 59 ms, CHANGELOG.md)."""
     u, sv, _ = jnp.linalg.svd(centred.T, full_matrices=False)  # u: (T, min(k, T))
     avail = min(u.shape[1], n_components)
     return sv[:avail], u[:, :avail].T

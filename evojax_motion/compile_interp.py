@@ -72,8 +72,8 @@ BC_LEAK = 2e-4
 # finds each basis' q-orthonormal coordinates by `basis.small_right_svd`'s two Gram passes instead
 # of the one-sided Jacobi SVD, on accelerators. One H100, paper configuration, the generation at
 # 10,000 / 30,000 / 100,000 conditions (70,000+ systems): 9.5 / 8.3 / 9 % faster; at 1,000
-# (7,000 systems) 7 % slower, its Jacobi rounds being more kernels there (`benchmarks/changes.md`,
-# twelfth session; between the two sizes not measured).
+# (7,000 systems) 7 % slower, its Jacobi rounds being more kernels there (CHANGELOG.md; between
+# the two sizes not measured).
 GRAM_SVD_MIN_MATRICES = 65_536
 # Floor of the constant's prior scale [rad], so that a joint no neighbour moves keeps a usable
 # constant (its column would otherwise be zero and no BC could be met).

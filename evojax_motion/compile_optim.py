@@ -94,7 +94,7 @@ from evojax_motion.timegrid import TimeGrid, derivatives
 METHODS = ("newton", "bfgs", "adam", "lbfgs")
 # Iteration budget of each method where ``max_iters`` is null (BFGS needs more, cheaper, ones:
 # with its subspace step, 40 left a median gap to SLSQP of 0.11-0.23 % at paper scale on an
-# H100, 50 gave 0.025 %; `benchmarks/changes.md`).
+# H100, 50 gave 0.025 %; CHANGELOG.md).
 DEFAULT_ITERS = {"newton": 25, "bfgs": 50, "adam": 25, "lbfgs": 25}
 # Samples may exceed a joint limit by this much [rad] and still count as within it: float32
 # rounding of a BC that sits exactly on a limit.
@@ -108,7 +108,7 @@ STEP_SCALES = (1.0, 0.25, 0.0625)  # fractions of the trust-region step tried in
 LAZY_GROUPS = 4
 # BFGS's first model of the torque cost (``initial_model="gauss-newton"``): the Gauss-Newton
 # matrix on every GN_NODE_STRIDE-th search node, plus GN_RIDGE times its largest diagonal entry.
-# Paper configuration, 100 conditions, 2 CPU cores (`benchmarks/changes.md`): strides 1, 2, 3
+# Paper configuration, 100 conditions, 2 CPU cores (CHANGELOG.md): strides 1, 2, 3
 # and 5 took 20, 20, 18 and 21.5 iterations (median); strides 1 and 3 cost 74 and 25 ms per 300
 # conditions.
 GN_NODE_STRIDE = 3
@@ -436,7 +436,7 @@ def fused_products() -> bool:
     time.
 
     On 2 CPU cores the products made a paper-scale generation 4-23 % slower in an A/B
-    (`benchmarks/changes.md`). On an H100 the einsum (a product over the 2 free directions per
+    (CHANGELOG.md). On an H100 the einsum (a product over the 2 free directions per
     joint, and in the gradient over the nodes) ran as a GEMM kernel of its own, 37 us of a 309
     us optimiser pass at 1,000 conditions; as products XLA fuses it into the dynamics' kernels.
     """
@@ -453,7 +453,7 @@ def node_states(z, problem: Problem, joint_lists: bool = False):
     array, the cotangents are padded back into it, and XLA's CPU compiler emitted the RNEA's
     adjoint as one loop over that array's elements that recomputed the shared adjoint for every
     element: the value and gradient of the paper-scale batch took 9.6 ms there against 5.2 ms
-    this way (2 CPU cores, 300 conditions x 26 nodes; `benchmarks/changes.md`). For the vector
+    this way (2 CPU cores, 300 conditions x 26 nodes; CHANGELOG.md). For the vector
     layout, which stacks them again, lists made the float64 SLSQP reference 10 % slower.
     """
     if not joint_lists:
@@ -568,7 +568,7 @@ def fused_search_gradient(dyn: Dynamics) -> bool:
 
     On the CPU it is what makes the fast path fast (`make_search_value`). On one H200 it was
     faster too (a generation at 1,000 / 10,000 conditions 8.54 / 45.5 ms against 10.15 / 59.6
-    ms; `benchmarks/changes.md`): the value and gradient of a pass are ~10 kernels there."""
+    ms; CHANGELOG.md): the value and gradient of a pass are ~10 kernels there."""
     return dyn.torques is not None
 
 
@@ -589,7 +589,7 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
     torques themselves were a loop that evaluated the recursion once per joint. The outputs of
     one reduction come from one loop, where XLA computes what they share once: value and
     gradient of the paper-scale batch 1.0-1.2 against 7.9-10.2 ms, the value 0.7 against 2.7 ms
-    (2 CPU cores; `benchmarks/changes.md`). Otherwise ``f`` is `make_objective`'s first output.
+    (2 CPU cores; CHANGELOG.md). Otherwise ``f`` is `make_objective`'s first output.
     """
     if method == "newton" or not fused_search_gradient(dyn):
         objective = make_objective(dyn, lo, hi, weight)
@@ -689,7 +689,7 @@ def _row_reduce(x, op=jnp.add):
     Up to ``n = COLUMN_REDUCE_MAX_N`` as ``op`` over the columns, elementwise: XLA fuses that
     with what comes before and after, where a reduction starts a new GPU kernel (the 2 x 2
     subspace model's secular iterations: 434 kernels a generation at 1,000 conditions on an H100
-    as reductions, 186 this way; `benchmarks/changes.md`, eighth session).
+    as reductions, 186 this way; CHANGELOG.md).
     """
     n = x.shape[-1]
     if n > COLUMN_REDUCE_MAX_N:
@@ -788,7 +788,7 @@ def _subspace_step(bm, pn, g, radius):
 
     Paper configuration, 100 conditions, 40 iterations, 2 CPU cores, gap to float64 SLSQP:
     median 0.021 % (the n x n exact step: 0.021 %; the dogleg step: 0.107 %); measured with
-    LAPACK solving the 2 x 2 problems, before the closed form (`benchmarks/changes.md`).
+    LAPACK solving the 2 x 2 problems, before the closed form (CHANGELOG.md).
     """
     tiny = jnp.finfo(g.dtype).tiny
     u1 = -g / jnp.maximum(jnp.sqrt(_dot_rows(g, g)), tiny)[:, None]
@@ -934,7 +934,7 @@ def _trust_region(
             # it. (Restarting the model as a multiple of the identity there, as before, threw
             # the Gauss-Newton start and the learned curvature away: at 30 iterations, 300
             # paper problems, p95 gap to SLSQP 3.1 % with the restart, 1.2 % without;
-            # `benchmarks/changes.md`.)
+            # CHANGELOG.md.)
             updated = _bfgs_update(st["br"], z_new - z, rest - rest_old, accept)
             sigma0 = row_norms(rest) / RADIUS_INIT
             start = sigma0[:, None, None] * eye

@@ -144,10 +144,10 @@ def _open(args):
     return _session(str(path.resolve()), path.stat().st_mtime_ns, args.dynamics)
 
 
-def _generate_one(session, target, duration, q_start):
+def _generate_one(opened, target, duration, q_start):
     from evojax_motion.online import check_query, to_numpy
 
-    model, gen, _ = session
+    model, gen, _ = opened
     targets, dur, q0 = check_query(model.robot, target, duration, q_start)
     return to_numpy(gen(model.db_device, targets, dur, q0))
 
@@ -160,10 +160,10 @@ def cmd_generate(args) -> int:
     from evojax_motion.compile_cache import enable_compile_cache
 
     enable_compile_cache()
-    session = _open(args)
-    model, _, check = session
+    opened = _open(args)
+    model, _, check = opened
     target = np.asarray(args.target, np.float32)
-    motion = _generate_one(session, target, args.duration, args.start)
+    motion = _generate_one(opened, target, args.duration, args.start)
     note = None
     if not bool(motion.reachable[0]):
         point, dist = nearest_reachable(check, model.db_device, target)
@@ -174,7 +174,7 @@ def cmd_generate(args) -> int:
         if not args.nearest:
             raise UserError(f"{where}; pass --nearest to use it")
         note = f"{where}; using it (--nearest)"
-        motion = _generate_one(session, point, args.duration, args.start)
+        motion = _generate_one(opened, point, args.duration, args.start)
         if not bool(motion.reachable[0]):
             raise UserError(f"{where}, but it could not be reached either; nothing written")
     meta = _motion_meta(model, motion, 0)
@@ -233,9 +233,9 @@ def cmd_catch(args) -> int:
     from evojax_motion.compile_cache import enable_compile_cache
 
     enable_compile_cache()
-    session = _open(args)
-    model = session[0]
-    catcher = _catcher(session, catch)
+    opened = _open(args)
+    model = opened[0]
+    catcher = _catcher(opened, catch)
     q0 = np.asarray(model.robot.rest, np.float32)[None]
     plan, motion = jax.device_get(catcher(model.db_device, p0, v0, q0))
     line = explain_plan(plan, 0)
@@ -243,7 +243,7 @@ def cmd_catch(args) -> int:
     if not bool(plan.feasible[0]):
         if not args.nearest:
             raise UserError(f"{line}; pass --nearest to move toward the ball anyway")
-        motion, note = _nearest_attempt(session, catch, plan)
+        motion, note = _nearest_attempt(opened, catch, plan)
     meta = _motion_meta(model, motion, 0)
     meta.update(
         ball=_vec(np.concatenate([p0[0], v0[0]])),
@@ -275,20 +275,20 @@ def cmd_catch(args) -> int:
 _CATCHERS: dict = {}
 
 
-def _catcher(session, catch):
-    """The jitted catcher of a session and catch settings (kept, like `_session`)."""
+def _catcher(opened, catch):
+    """The jitted catcher of an opened database and catch settings (kept, like `_session`)."""
     from evojax_motion.catching import make_catcher
 
-    key = (id(session[0]), catch)
+    key = (id(opened[0]), catch)
     if key not in _CATCHERS:
-        model = session[0]
+        model = opened[0]
         _CATCHERS[key] = make_catcher(
             model.robot, model.dyn, model.grid, model.basis_settings, model.settings, catch
         )
     return _CATCHERS[key]
 
 
-def _nearest_attempt(session, catch, plan):
+def _nearest_attempt(opened, catch, plan):
     """``--nearest`` for an uncatchable ball: move toward it as well as the arm can.
 
     Too early: to the reachable sample with the best time margin, as fast as allowed (arriving
@@ -297,7 +297,7 @@ def _nearest_attempt(session, catch, plan):
     """
     from evojax_motion.online import nearest_reachable
 
-    model, _, check = session
+    model, _, check = opened
     if bool(plan.passes_region[0]):
         k = int(plan.late_index[0])
         point = np.asarray(plan.ball[0, k], np.float32)
@@ -311,7 +311,7 @@ def _nearest_attempt(session, catch, plan):
     t_ball = float(plan.times[0, k])
     duration = float(np.clip(t_ball - catch.reaction_time, d_nat / catch.speedup, d_nat))
     start = max(catch.reaction_time, t_ball - duration)
-    motion = _generate_one(session, point, duration, None)
+    motion = _generate_one(opened, point, duration, None)
     if not bool(motion.reachable[0]):
         raise UserError(f"the nearest point {_vec(point)} m could not be reached; nothing written")
     return motion._replace(t=motion.t + start), note

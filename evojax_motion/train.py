@@ -44,7 +44,7 @@ CONDITIONS_STREAM = 1  # fold_in index of the condition set's key (seed -> strea
 # Nice value added to the thread that precompiles the setup's programs (`EarlyCompile`): the
 # step's compile is a new run's critical path, the setup's programs are needed only after the
 # demonstrations. 2 CPU cores, paper config, cold, 3 alternating rounds: 31.4 / 30.4 / 30.4 s to
-# the first generation against 31.5 / 32.4 / 33.1 s (`benchmarks/changes.md`, tenth session).
+# the first generation against 31.5 / 32.4 / 33.1 s (CHANGELOG.md).
 PRECOMPILE_NICE = 10
 CONFIG_FILE, ROBOT_FILE, METRICS_FILE = "config.yaml", "robot.xml", "metrics.jsonl"
 CHECKPOINT_DIR, PLOT_DIR, SUMMARY_FILE = "checkpoints", "plots", "summary.json"
@@ -562,7 +562,7 @@ def stays_on_device(cfg: Config) -> bool:
     """Whether the generations' inputs stay on the device between generations: the database the
     step returned, and the conditions put there once. True where the step runs on one device
     (with numpy inputs every call copied them from the host and changed their layout there:
-    ~2 ms a generation at 1,000 conditions on an H100, `benchmarks/changes.md`); a sharded step
+    ~2 ms a generation at 1,000 conditions on an H100, CHANGELOG.md); a sharded step
     takes its inputs from the host as before."""
     from evojax_motion.parallel import resolve_devices
 
@@ -608,7 +608,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     while ``finish`` is traced and compiled here), each through `compile_cache.compile_traced`,
     so that with JAX's compilation cache on a later process skips tracing them too. Traced and
     compiled: 10.3-10.6 against 13.3-13.6 s as one program at paper scale on 2 CPU cores, 27-29
-    against 40-45 s at 1,000 conditions on an H200 (`benchmarks/changes.md`, twelfth session).
+    against 40-45 s at 1,000 conditions on an H200 (CHANGELOG.md).
     """
     from evojax_motion.compile_cache import Background, compile_traced, lower_traced
     from evojax_motion.database import count_human

@@ -5,11 +5,11 @@ import shutil
 import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# One persistent XLA cache for the whole session: the controller makes it before pytest-xdist
+# One persistent XLA cache for the whole test run: the controller makes it before pytest-xdist
 # starts its workers, which inherit the variable, as do the subprocesses, the notebook kernel and
 # the command-line tools (`compile_cache.CACHE_ENV`) the tests start. The same programs (the tiny
 # config's generation step, the online query of the test database) are then compiled once, not
-# once per process. Never the user's own cache: a fresh directory per session.
+# once per process. Never the user's own cache: a fresh directory per test run.
 _OWN_CACHE = "PYTEST_XDIST_WORKER" not in os.environ and "EVOJAX_TEST_XLA_CACHE" not in os.environ
 if _OWN_CACHE:
     os.environ["EVOJAX_TEST_XLA_CACHE"] = tempfile.mkdtemp(prefix="evojax-tests-xla-")
@@ -20,8 +20,8 @@ if "EVOJAX_TEST_XLA_CACHE" in os.environ:
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 # The tests' programs compile with XLA's CPU fusion emitters off, as those of
 # `dynamics.unfused_cpu_program` always do: every test passes with its tolerances unchanged, and
-# pytest takes ~60 % of the time (most of the suite is XLA compilation; 2 CPU cores, 2026-11-25:
-# 230-234 s vs 365-394 s). For the test session only: its processes and those they start inherit
+# pytest takes ~60 % of the time (most of the suite is XLA compilation; 2 CPU cores:
+# 230-234 s vs 365-394 s). For the test run only: its processes and those they start inherit
 # XLA_FLAGS; a setting of the flag in the user's XLA_FLAGS wins. Spelt "=0", not "=false": the
 # RNEA layout that `dynamics_rnea.default_form` picks is then still the users' default one
 # (vector on CPU), since it switches to "scalar" on "=false" only; checked below.
@@ -60,7 +60,7 @@ def x64():
 
 
 def pytest_unconfigure(config):
-    """The session's XLA cache goes with the session (the process that made it removes it)."""
+    """The test run's XLA cache goes with the run (the process that made it removes it)."""
     if _OWN_CACHE:
         shutil.rmtree(os.environ["EVOJAX_TEST_XLA_CACHE"], ignore_errors=True)
 
@@ -70,9 +70,9 @@ def pytest_unconfigure(config):
 # test modules (a module's fixtures are built once, on one worker), except where modules build
 # the same programs: those form one unit (`SHARED_GROUPS`, `pytest_xdist_make_scheduler`), so
 # they run one after another on one worker and the later ones find the first one's compiles in
-# the session's XLA cache (side by side on two workers, both would compile them). The units are
+# the test run's XLA cache (side by side on two workers, both would compile them). The units are
 # handed out heaviest first (`GROUP_SECONDS`: seconds in `make test` runs on 2 CPU cores with the
-# compile flag above, mean of 3, 2026-11-25; `pytest_collection_modifyitems` orders the tests
+# compile flag above, mean of 3; `pytest_collection_modifyitems` orders the tests
 # so), so that no long unit starts last while the other worker has nothing left to do. (Not
 # `--dist loadgroup` with `xdist_group` marks: pytest-xdist 3.8 puts the group into
 # `item._nodeid`, which pytest 9 no longer reads, so every test would be a unit of its own and

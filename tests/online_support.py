@@ -126,10 +126,10 @@ def cli_session(env: Env, db_path) -> tuple:
         source=str(db_path),
         settings_source="tests",
     )
-    session = (model, env.generate, reach_checker())
+    opened = (model, env.generate, reach_checker())
     catch, fn = catcher()
     online_cli._CATCHERS[(id(model), catch)] = fn
-    return session
+    return opened
 
 
 def query(env: Env, targets, duration=None, q_start=None):

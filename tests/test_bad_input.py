@@ -98,8 +98,8 @@ def _snapshot(folder: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def scratch(tmp_path_factory):
-    return tmp_path_factory.mktemp("scratch")
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp("workdir")
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -137,10 +137,10 @@ def _fill(text: str, d: Path, s: Path) -> str:
     return text.replace("{D}", str(d)).replace("{S}", str(s))
 
 
-def check_refused(argv: list[str], names: list[str], inputs: Path, scratch: Path) -> None:
+def check_refused(argv: list[str], names: list[str], inputs: Path, workdir: Path) -> None:
     """Run ``evojax-motion argv`` in a fresh folder ``S``: exit 2, one ``error:`` line naming one
     of ``names``, no traceback, no file created or changed in ``S`` or in the inputs."""
-    s = Path(tempfile.mkdtemp(dir=scratch))
+    s = Path(tempfile.mkdtemp(dir=workdir))
     argv = [_fill(a, inputs, s) for a in argv]
     names = [_fill(n, inputs, s) for n in names]
     before_inputs = _snapshot(inputs)
@@ -320,7 +320,7 @@ def _nested(overrides: dict) -> dict:
 
 @settings(max_examples=N_CONFIG, **FUZZ)
 @given(mistake=config_mistakes(), via=st.sampled_from(["file", "set", "demos"]))
-def test_fuzzed_configs_are_refused(inputs, scratch, mistake, via):
+def test_fuzzed_configs_are_refused(inputs, workdir, mistake, via):
     """A config with one mistake, as a YAML file or as ``--set`` overrides, for ``train`` and
     ``demos``: refused before anything is computed or written."""
     overrides, config_path, names = mistake
@@ -328,10 +328,10 @@ def test_fuzzed_configs_are_refused(inputs, scratch, mistake, via):
     if overrides is None:
         argv_cfg, extra = config_path, []
     elif via == "file":
-        filled = {k: _fill(v, inputs, scratch) if isinstance(v, str) else v
+        filled = {k: _fill(v, inputs, workdir) if isinstance(v, str) else v
                   for k, v in overrides.items()}  # fmt: skip
         text = yaml.safe_dump(_nested(filled))
-        path = Path(tempfile.mkdtemp(dir=scratch)) / "cfg.yaml"
+        path = Path(tempfile.mkdtemp(dir=workdir)) / "cfg.yaml"
         path.write_text(text)
         argv_cfg, extra = str(path), []
     else:
@@ -341,7 +341,7 @@ def test_fuzzed_configs_are_refused(inputs, scratch, mistake, via):
         argv = ["demos", "--config", argv_cfg, "--out", f"{s}/demos.npz", *extra]
     else:
         argv = ["train", argv_cfg, "--out", f"{s}/run", "--quiet", *extra]
-    check_refused(argv, names, inputs, scratch)
+    check_refused(argv, names, inputs, workdir)
 
 
 # --------------------------------------------------------------------------- command lines
@@ -565,26 +565,26 @@ def parser_mistakes(draw):
         parser_mistakes(),
     )
 )
-def test_fuzzed_command_lines_are_refused(inputs, scratch, case):
+def test_fuzzed_command_lines_are_refused(inputs, workdir, case):
     argv, names = case
-    check_refused(argv, names, inputs, scratch)
+    check_refused(argv, names, inputs, workdir)
 
 
 @pytest.mark.parametrize("value", ["-inf", "-Infinity", "-nan"])
-def test_negative_non_finite_values_are_named_by_their_option(inputs, scratch, value):
+def test_negative_non_finite_values_are_named_by_their_option(inputs, workdir, value):
     """A found case: argparse took "-inf" for an option ("unrecognized arguments"); the option's
     own check must name it."""
     argv = ["generate", "--db", "{D}/good.npz", "--target", *_good_target, "--out",
             "{S}/traj.csv", "--start", *["0.0"] * 6, value]  # fmt: skip
-    check_refused(argv, ["--start", "start posture"], inputs, scratch)
+    check_refused(argv, ["--start", "start posture"], inputs, workdir)
 
 
 def test_fuzz_covers_at_least_200_cases():
     assert N_CONFIG + N_CLI >= 200
 
 
-def test_shared_inputs_survive(inputs, scratch):
-    """The module's inputs are never changed; the scratch folder holds no leftovers."""
-    check_refused(["train", str(TINY), "--out", "{D}/traj.csv"], ["{D}/traj.csv"], inputs, scratch)
-    assert [p for p in scratch.rglob("*") if p.is_file() and p.name != "cfg.yaml"] == []
-    shutil.rmtree(scratch)
+def test_shared_inputs_survive(inputs, workdir):
+    """The module's inputs are never changed; the workdir folder holds no leftovers."""
+    check_refused(["train", str(TINY), "--out", "{D}/traj.csv"], ["{D}/traj.csv"], inputs, workdir)
+    assert [p for p in workdir.rglob("*") if p.is_file() and p.name != "cfg.yaml"] == []
+    shutil.rmtree(workdir)

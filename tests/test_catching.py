@@ -131,8 +131,8 @@ def test_cli_catch(tmp_path, capsys, monkeypatch):
     env = online_env()
     db = tmp_path / "db.npz"
     save_database(db, env.db, env.meta)
-    session = cli_session(env, db)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: session)
+    opened = cli_session(env, db)
+    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
     p0 = np.array([3.0, -0.2, 1.6], np.float32)
     v0 = throw_through(env.db.condition[5], 0.8, p0)
     ball = [f"{x:.6f}" for x in np.r_[p0, v0]]

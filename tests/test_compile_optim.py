@@ -94,18 +94,17 @@ TOL_FUSED_RUN = 1e-4  # relative cost, float32: an optimiser's result, fused gra
 TOL_PAPER_START = 1e-3
 # Relative gap to float64 SLSQP of the catching config's compiler (BFGS, 30 iterations) on the
 # same 100 paper problems, 75th and 95th percentiles. Measured in this test (2 CPU cores): 0.0073 %
-# and 1.03 % (0.0074 % and 1.07 % since the eighth session's regrouped sums); when a step that
+# and 1.03 % (0.0074 % and 1.07 % with the subspace model's sums regrouped); when a step that
 # no length passed restarted BFGS's model as a multiple of the identity (the code before
-# 2026-11-25's seventh session): 0.0225 % and 1.49 %. The 75th
+# CHANGELOG.md's "BFGS keeps its model"): 0.0225 % and 1.49 %. The 75th
 # percentile is the one that tells them apart; the 95th bounds the tail (local minima; on the
 # benchmark's first 100 of 300 conditions it read 1.76 %, so a draw of problems moves it).
 TOL_PAPER_P75 = 1.5e-4
 TOL_PAPER_P95 = 2e-2
 # Of those 100 problems, how many may end outside their joint limits (rejected, as the evolution
 # rejects such offspring): problem 35 stops at the budget on the edge of a limit, and whether its
-# worst sample is inside depends on the CPU's rounding: 4.4e-4 rad outside on the 2-core machine
-# of 2026-11-25's ninth session (1.7e-3 at the seventh session's code), inside on the CI machine
-# that passed the seventh session's submission.
+# worst sample is inside depends on the CPU's rounding: 4.4e-4 rad outside on one 2-core AMD EPYC
+# machine (1.7e-3 with the model kept but the sums not yet regrouped), inside on the CI machine.
 TOL_PAPER_OUTSIDE = 2
 
 
@@ -758,8 +757,8 @@ def test_paper_config_reaches_float64_slsqp_on_paper_problems(paper):
     problems, by the benchmark's own comparison (`optimality_gap`): three in four end within
     `TOL_PAPER_P75` of float64 SLSQP's cost, 95 in 100 within `TOL_PAPER_P95`, all within
     their limits but `TOL_PAPER_OUTSIDE`. How many converge within the budget is what it measures:
-    it fails when the model is thrown away after a rejected step (the code before the seventh
-    session)."""
+    it fails when the model is thrown away after a rejected step (the code before
+    CHANGELOG.md's "BFGS keeps its model")."""
     from benchmarks.generations_per_sec import optimality_gap
 
     gap = optimality_gap(*paper, 100)

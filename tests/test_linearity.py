@@ -55,7 +55,7 @@ def _run(m, seconds, prepare_us, finish_us, dynamics_us, other_us):
     return {
         "conditions": m,
         "seconds_per_generation": seconds,
-        "machine": {"date": "2026-11-26", "device_kind": "test"},
+        "machine": {"date": "2000-01-02", "device_kind": "test"},
         "trace": {
             "busy_us_per_generation": busy,
             "stages": {

@@ -381,8 +381,8 @@ def test_cli_generate_csv_torques_equal_mj_inverse(env, db_file, tmp_path, capsy
     from evojax_motion import online_cli
     from evojax_motion.export import read_trajectory
 
-    session = cli_session(env, db_file)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: session)
+    opened = cli_session(env, db_file)
+    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
     target = [f"{v:.4f}" for v in env.db.condition[3] + 0.01]
     out = tmp_path / "traj.csv"
     assert _cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 0

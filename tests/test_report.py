@@ -84,7 +84,7 @@ def make_fake_run(path: Path, generations: int = 2) -> Path:
 
     path.mkdir(parents=True)
     # configs/tiny.yaml's settings and sizes: the report then compiles what the notebook's
-    # figures of the tiny run compile (the session's XLA cache serves both; conftest runs them
+    # figures of the tiny run compile (the test run's XLA cache serves both; conftest runs them
     # on one worker)
     cfg = load_config(TINY, [f"evolution.generations={generations}"])
     assert (cfg.demos.count, cfg.demos.samples, cfg.evolution.conditions) == (N_HUMAN, T, M)

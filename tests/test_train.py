@@ -188,7 +188,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     from evojax_motion.train import expected_inputs, initial_state
     from evojax_motion.workflow import make_robot_dynamics
 
-    assert compile_cache.traced_cache_dir() is not None  # conftest's session cache
+    assert compile_cache.traced_cache_dir() is not None  # conftest's test-run cache
     cfg = load_config(TINY)
     robot, dyn = make_robot_dynamics(cfg)
     db, conditions, meta, *_ = initial_state(cfg, robot, dyn)
@@ -259,7 +259,7 @@ def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypa
     from evojax_motion.train import StagedStep, compile_generation_step, initial_state
     from evojax_motion.workflow import make_robot_dynamics
 
-    assert compile_cache.traced_cache_dir() is not None  # conftest's session cache
+    assert compile_cache.traced_cache_dir() is not None  # conftest's test-run cache
     cfg = load_config(TINY, [f"compiler.method={method}"])
     robot, dyn = make_robot_dynamics(cfg)
     db, conditions, *_ = initial_state(cfg, robot, dyn)
@@ -471,7 +471,7 @@ KILL_ARGS = ["train", str(TINY), "--quiet", "--set", "train.plots=false"]
 
 
 class _KillServer:
-    """`_KILL_DRIVER` in a subprocess. It inherits the session's XLA cache (conftest), so its
+    """`_KILL_DRIVER` in a subprocess. It inherits the test run's XLA cache (conftest), so its
     runs reuse the fixtures' compiles."""
 
     def __init__(self, folder: Path):
