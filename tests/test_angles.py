@@ -15,10 +15,11 @@ def test_on_rest_branch_keeps_poses_and_lands_near_rest(seed):
     rng = np.random.default_rng(seed)
     t, j = 20, 3
     smooth = np.cumsum(rng.normal(0.0, 0.3, (4, t, j)), axis=1)
-    turns = rng.integers(-3, 4, (4, t, j))  # the same poses stored up to 3 turns apart
+    continuous = np.array([True, True, False])
+    # the same poses stored up to 3 turns apart, on the continuous joints
+    turns = rng.integers(-3, 4, (4, t, j)) * continuous
     q = smooth + 2 * np.pi * turns
     rest = rng.uniform(-np.pi, np.pi, j)
-    continuous = np.array([True, True, False])
     out = on_rest_branch(q, rest, continuous)
     k = (out - q) / (2 * np.pi)
     assert np.allclose(k, np.round(k), atol=TURN_TOL)  # whole turns only
