@@ -19,7 +19,9 @@ Among those, the sample with the largest ``min(time margin / time_scale, depth /
 is chosen (depth: how far ``p_i`` lies inside the learned region): a catch robust to both a late
 start and an error in the predicted point. The motion ends at ``t_i`` with the hand at rest at
 ``p_i``; its duration is ``min(t_i - reaction_time, D_nat)`` (an early arm waits rather than
-moving slower than a human would).
+moving slower than a human would), or longer where the velocity or torque limits ask for it
+(`online` time scaling: the latest start that still ends at ``t_i``); a motion that would have to
+start before the reaction time to stay within them is no catch (``motion.within_time`` False).
 
 A ball that offers no such sample cannot be caught; the plan says why, with the distance from the
 ball's path to the reachable region and the time missing.
@@ -230,8 +232,9 @@ def plan_catch(
 
 
 class Catch(NamedTuple):
-    """A plan and its motion: ``plan`` (`CatchPlan`), ``motion`` (`online.OnlineResult`, with
-    ``t`` in seconds after release). ``motion.ok`` and ``plan.feasible`` both matter."""
+    """A plan and its motion: ``plan`` (`CatchPlan`; ``duration`` and ``start_time`` are the
+    motion's, after time scaling), ``motion`` (`online.OnlineResult`, with ``t`` in seconds after
+    release). ``motion.ok`` and ``plan.feasible`` both matter."""
 
     plan: CatchPlan
     motion: OnlineResult
@@ -259,10 +262,14 @@ def catch_query(
     basis, boundary, reach = build_problem(
         dyn, db, plan.catch_point, plan.duration, q_start, lower, upper, basis_settings, settings
     )
+    available = plan.catch_time - catch.reaction_time
     motion = finish_motion(
-        dyn, grid, lower, upper, settings, basis, boundary, reach, plan.catch_point
+        dyn, grid, lower, upper, settings, basis, boundary, reach, plan.catch_point, available
     )
-    motion = motion._replace(t=motion.t + plan.start_time[:, None], ok=motion.ok & plan.feasible)
+    # Time scaling may have slowed the motion down: it starts earlier, still ending at the catch.
+    start = plan.catch_time - motion.duration
+    plan = plan._replace(duration=motion.duration, start_time=start)
+    motion = motion._replace(t=motion.t + start[:, None], ok=motion.ok & plan.feasible)
     return Catch(plan, motion)
 
 

@@ -2,7 +2,9 @@
 
 One motion per file, sampled on the primitive's time grid, in three formats:
 
-- ``csv``: a header row, then one row per sample. Columns: ``t`` [s], then ``q_<joint>`` [rad]
+- ``csv``: the meta first, one comment line ``# KEY: VALUE`` (VALUE in JSON) per entry (target,
+  duration, margins...; ``numpy.loadtxt`` and ``pandas.read_csv(comment="#")`` skip them), then a
+  header row, then one row per sample. Columns: ``t`` [s], then ``q_<joint>`` [rad]
   for every joint, then ``qd_<joint>`` [rad/s], ``qdd_<joint>`` [rad/s^2] and ``tau_<joint>``
   [N m] (blocks in that order, joints in the robot's column order). Floats are written with
   enough digits to read back bit for bit (9 significant for float32, 17 for float64).
@@ -94,6 +96,8 @@ def _csv_text(data: TrajectoryData) -> str:
     table = np.concatenate([data.t[:, None], data.q, data.qd, data.qdd, data.tau], axis=1)
     fmt = _float_format(data.t, data.q, data.qd, data.qdd, data.tau)
     buf = io.StringIO()
+    for key, value in _json_safe(data.meta).items():
+        buf.write(f"# {key}: {json.dumps(value, allow_nan=False)}\n")
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(column_names(data.joint_names))
     for row in table:
@@ -166,7 +170,15 @@ def read_trajectory(path: str | os.PathLike, fmt: str | None = None) -> Trajecto
             **arrays, joint_names=tuple(doc["joint_names"]), meta=doc.get("meta", {})
         )
     with path.open(newline="") as f:
-        rows = list(csv.reader(f))
+        lines = f.read().splitlines()
+    meta = {}
+    while lines and lines[0].startswith("#"):
+        key, _, value = lines.pop(0)[1:].partition(":")
+        try:
+            meta[key.strip()] = json.loads(value)
+        except ValueError:
+            raise UserError(f"{path}: expected comment lines '# KEY: JSON', got {key!r}") from None
+    rows = list(csv.reader(lines))
     header, body = rows[0], np.asarray(rows[1:], np.float64)
     if header[0] != "t" or (len(header) - 1) % len(QUANTITIES):
         raise UserError(f"{path}: expected a header 't, q_<joint>..., ...', got {header[:3]}...")
@@ -175,4 +187,4 @@ def read_trajectory(path: str | os.PathLike, fmt: str | None = None) -> Trajecto
     if header != column_names(names):
         raise UserError(f"{path}: header does not follow 't, q_*, qd_*, qdd_*, tau_*'")
     blocks = {name: body[:, 1 + i * j : 1 + (i + 1) * j] for i, name in enumerate(QUANTITIES)}
-    return TrajectoryData(t=body[:, 0], **blocks, joint_names=names, meta={})
+    return TrajectoryData(t=body[:, 0], **blocks, joint_names=names, meta=meta)

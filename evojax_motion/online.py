@@ -13,7 +13,8 @@ target hand position ``p*`` (optionally a duration D and a start posture q0):
    duration unless given;
 4. joint limits (the paper's open problem, sec. 5: "some motions ... violated some of the joint
    limits"): see below;
-5. ``qd, qdd`` from the time grid and ``tau`` by inverse dynamics (eq. 4), the eq. 5 cost.
+5. ``qd, qdd`` from the time grid and ``tau`` by inverse dynamics (eq. 4), the eq. 5 cost;
+6. velocity and torque limits by time scaling: see below.
 
 Everything is one jitted function over any number of targets (`make_online_generator`; pieces:
 `reach_query` = steps 1-2, `build_problem` + `finish_motion` = steps 1-5). Outside the learned
@@ -36,6 +37,21 @@ by the margin. A guarantee on top: a joint still outside after that is blended t
 minimum-jerk path ``q0 -> qf`` (inside the limits whenever q0 and qf are, and with the same
 rest-to-rest BCs), ``q = (1 - lam) q + lam q_mj`` with the smallest ``lam in [0, 1]`` that brings
 every sample inside (closed form). So an online motion never leaves ``[lower, upper]``.
+
+Velocity and torque limits (``Robot.velocity_limit``, ``Robot.torque_limit``; inf: none). The
+path ``q(s)`` on normalised time does not depend on the duration D (the BCs are rest to rest), so
+a motion over a limit is slowed down, never reshaped. With ``w = 1 / D`` the velocities are
+``q'(s) w`` and the torques of MuJoCo's inverse dynamics a polynomial ``tau = c0 + c1 w + c2 w^2``
+(gravity and springs; damping; inertia, Coriolis and armature), whose coefficients three inverse
+dynamics evaluations give exactly (`time_law`). `shortest_duration` finds the smallest D >= the
+asked one with every ``|qd| <= (1 - h) v_max`` and ``|tau| <= (1 - h) tau_max`` (``h =
+limit_headroom``, the authority left to a feedback controller): a log-spaced scan up to
+`MAX_DURATION`, then bisection between the last infeasible and the first feasible duration
+(feasibility is monotone in D without damping; the scan guards the rest). A motion is usable
+(``ok``) only when that D fits the time allowed (`MAX_DURATION`; for a catch, until the ball
+arrives) and its torques, recomputed by inverse dynamics at that D, are within the limits.
+Otherwise the result says which limit binds: joint, value needed, at what time (``worst_*``);
+e.g. gravity alone over a torque limit fails at any D.
 """
 
 from __future__ import annotations
@@ -62,6 +78,7 @@ from evojax_motion.database import EVOLVED, Database
 from evojax_motion.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.errors import UserError, check_setting
 from evojax_motion.ik import solve_ik
+from evojax_motion.linalg.cholesky import spd_solve
 from evojax_motion.objective import cost_from_torques
 from evojax_motion.precision import exact_matmuls
 from evojax_motion.robot import Robot
@@ -88,6 +105,11 @@ class OnlineSettings:
     - ``limit_margin`` [rad]: the limit projection aims this far inside the joint limits.
     - ``projection_iters``: semi-smooth Newton steps of the limit projection.
     - ``penalty``: weight of a limit violation relative to the null-space step (scale-free).
+    - ``limit_headroom``: fraction of every velocity and torque limit that time scaling keeps
+      free (for a tracking controller's feedback; docs/simulation.md): motions are planned
+      within ``(1 - limit_headroom)`` times the limits.
+    - ``scaling_scan``, ``scaling_iters``: durations scanned (log-spaced up to `MAX_DURATION`)
+      and bisection steps of the time scaling.
     """
 
     n_components: int = 3
@@ -99,6 +121,9 @@ class OnlineSettings:
     limit_margin: float = 2e-3
     projection_iters: int = 8
     penalty: float = 1e4
+    limit_headroom: float = 0.05
+    scaling_scan: int = 32
+    scaling_iters: int = 24
 
     def __post_init__(self):
         check_setting(self.n_components >= 1, "n_components", "an integer >= 1", self.n_components)
@@ -122,6 +147,16 @@ class OnlineSettings:
             self.projection_iters >= 0, "projection_iters", "an integer >= 0", self.projection_iters
         )
         check_setting(self.penalty > 0, "penalty", "a number > 0", self.penalty)
+        check_setting(
+            0 <= self.limit_headroom < 1,
+            "limit_headroom",
+            "a number in [0, 1)",
+            self.limit_headroom,
+        )
+        check_setting(self.scaling_scan >= 2, "scaling_scan", "an integer >= 2", self.scaling_scan)
+        check_setting(
+            self.scaling_iters >= 0, "scaling_iters", "an integer >= 0", self.scaling_iters
+        )
 
 
 class OnlineResult(NamedTuple):
@@ -135,8 +170,16 @@ class OnlineResult(NamedTuple):
     limit_excess: (B,) largest limit violation of plain eq. 1 interpolation [rad] (0 = none);
     fallback: (B,) the minimum-jerk blend was needed after the projection;
     bc_residual: (B,) BC error of q; cost: (B,) eq. 5 cost [N^2 m^2 s];
+    duration_asked: (B,) the duration before time scaling [s] (``duration`` > it: stretched);
+    duration_needed: (B,) the shortest duration within the usable velocity and torque limits
+    [s] (inf: none up to `MAX_DURATION`); within_time: (B,) it fits the time allowed;
+    torque_margin, velocity_margin: (B,) min over joints of ``1 - peak / limit`` (1 without
+    limits; < 0 over a limit); joint_margin: (B,) smallest distance to a joint limit [rad];
+    worst_joint, worst_kind (0 torque, 1 velocity), worst_value [N m or rad/s], worst_time [s
+    from the start]: the sample and joint that use the most of a usable limit (`limit_headroom`);
     reachable: (B,) inside the learned region and reached by the IK;
-    ok: (B,) reachable, finite and inside the joint limits (a usable motion).
+    ok: (B,) reachable, finite, inside the joint limits, within the velocity and torque limits,
+    and within the time allowed (a usable motion).
     """
 
     t: jnp.ndarray
@@ -155,6 +198,16 @@ class OnlineResult(NamedTuple):
     fallback: jnp.ndarray
     bc_residual: jnp.ndarray
     cost: jnp.ndarray
+    duration_asked: jnp.ndarray
+    duration_needed: jnp.ndarray
+    within_time: jnp.ndarray
+    torque_margin: jnp.ndarray
+    velocity_margin: jnp.ndarray
+    joint_margin: jnp.ndarray
+    worst_joint: jnp.ndarray
+    worst_kind: jnp.ndarray
+    worst_value: jnp.ndarray
+    worst_time: jnp.ndarray
     reachable: jnp.ndarray
     ok: jnp.ndarray
 
@@ -277,31 +330,6 @@ def minimum_jerk(grid: TimeGrid, q0, qf) -> jnp.ndarray:
     return q0[:, None, :] + (qf - q0)[:, None, :] * shape[None, :, None]
 
 
-def spd_solve(h, b):
-    """``x`` with ``h x = b`` for a small symmetric positive definite ``h (n, n)``, ``b (n,)``.
-
-    Cholesky unrolled in Python: only elementwise work, which XLA fuses and vectorises over any
-    batch (batched LU calls for 4 x 4 systems dominate the online query on GPUs).
-    """
-    n = h.shape[0]
-    tiny = jnp.finfo(h.dtype).tiny
-    low = [[None] * n for _ in range(n)]
-    for i in range(n):
-        for j in range(i + 1):
-            acc = h[i, j] - sum((low[i][k] * low[j][k] for k in range(j)), jnp.zeros((), h.dtype))
-            low[i][j] = jnp.sqrt(jnp.maximum(acc, tiny)) if i == j else acc / low[j][j]
-    y: list = []
-    for i in range(n):
-        y.append(
-            (b[i] - sum((low[i][k] * y[k] for k in range(i)), jnp.zeros((), h.dtype))) / low[i][i]
-        )
-    x: list = [None] * n
-    for i in reversed(range(n)):
-        rest = sum((low[k][i] * x[k] for k in range(i + 1, n)), jnp.zeros((), h.dtype))
-        x[i] = (y[i] - rest) / low[i][i]
-    return jnp.stack(x)
-
-
 def _joint_projection(a, g, lo, hi, iters: int, penalty: float):
     """Smallest null-space step that brings one joint inside ``[lo_t, hi_t]``.
 
@@ -379,6 +407,91 @@ def enforce_limits(
     return q, jnp.maximum(excess, 0.0), fallback
 
 
+MAX_DURATION = 60.0  # [s] the longest motion a query may ask for or be stretched to
+TORQUE, VELOCITY = 0, 1  # `OnlineResult.worst_kind`
+
+
+class TimeLaw(NamedTuple):
+    """Torques and velocities of paths ``q(s)`` as functions of ``w = 1 / D`` (module doc).
+
+    ``tau = c0 + c1 w + c2 w^2``, ``qd = slope w``; all ``(C, T, J)``.
+    """
+
+    c0: jnp.ndarray
+    c1: jnp.ndarray
+    c2: jnp.ndarray
+    slope: jnp.ndarray
+
+
+def time_law(dyn: Dynamics, grid: TimeGrid, q) -> TimeLaw:
+    """The `TimeLaw` of ``q (C, T, J)``: inverse dynamics at ``w = 0, 1, -1``.
+
+    MuJoCo's inverse dynamics is ``M(q) qdd + C(q, qd) qd + g(q) + armature qdd + damping qd +
+    stiffness (q - ref)``: with ``qd = q' w`` and ``qdd = q'' w^2`` exactly quadratic in w.
+    """
+    slope, curve = derivatives(grid, q, jnp.ones(q.shape[0], q.dtype))
+    inv = jax.vmap(jax.vmap(dyn.inverse))
+    zero = jnp.zeros_like(q)
+    c0 = inv(q, zero, zero)
+    ahead, back = inv(q, slope, curve), inv(q, -slope, curve)
+    return TimeLaw(c0, 0.5 * (ahead - back), 0.5 * (ahead + back) - c0, slope)
+
+
+def limit_usage(law: TimeLaw, duration, vel_usable, tau_usable):
+    """Largest ``|qd| / vel_usable`` or ``|tau| / tau_usable`` of each path at ``duration (C,)``:
+    ``(C,)`` (<= 1: within the limits). Limits ``(J,)``; inf: none."""
+    w = (1.0 / duration)[:, None, None]
+    tau = law.c0 + w * (law.c1 + w * law.c2)
+    use = jnp.maximum(jnp.abs(tau) / tau_usable, jnp.abs(law.slope) * w / vel_usable)
+    return jnp.max(use, axis=(1, 2))
+
+
+def shortest_duration(
+    law: TimeLaw, duration, vel_usable, tau_usable, scan: int, iters: int
+) -> jnp.ndarray:
+    """The smallest ``D >= duration (C,)`` within the usable limits (``(J,)``); inf where no D
+    up to `MAX_DURATION` is. ``(C,)`` [s].
+
+    ``scan`` log-spaced durations from ``duration`` to `MAX_DURATION`, then ``iters`` bisection
+    steps (in log D) between the last infeasible and the first feasible one; the feasible end is
+    returned, so the result is always within the limits.
+    """
+    dtype = law.c0.dtype
+    duration = jnp.asarray(duration, dtype)
+    top = jnp.maximum(duration, MAX_DURATION)
+    frac = jnp.linspace(0.0, 1.0, scan, dtype=dtype)
+    cand = duration[:, None] * (top / duration)[:, None] ** frac[None, :]  # (C, K)
+    usage = jax.vmap(lambda d: limit_usage(law, d, vel_usable, tau_usable), 1, 1)(cand)
+    feasible = usage <= 1.0
+    first = jnp.argmax(feasible, axis=1)
+    hi = jnp.take_along_axis(cand, first[:, None], axis=1)[:, 0]
+    lo = jnp.take_along_axis(cand, jnp.maximum(first - 1, 0)[:, None], axis=1)[:, 0]
+
+    def bisect(_, bounds):
+        lo, hi = bounds
+        mid = jnp.sqrt(lo * hi)
+        ok = limit_usage(law, mid, vel_usable, tau_usable) <= 1.0
+        return jnp.where(ok, lo, mid), jnp.where(ok, mid, hi)
+
+    _, hi = jax.lax.fori_loop(0, iters, bisect, (lo, hi))
+    hi = jnp.where(first == 0, duration, hi)
+    return jnp.where(jnp.any(feasible, axis=1), hi, jnp.inf)
+
+
+def usable_limits(robot: Robot, settings: OnlineSettings, dtype=np.float32):
+    """``(vel_limit, tau_limit, vel_usable, tau_usable)``, each ``(J,)`` numpy (inf: none);
+    usable = ``(1 - limit_headroom)`` x limit."""
+    vel = np.asarray(robot.velocity_limit, np.float64)
+    tau = np.asarray(robot.torque_limit, np.float64)
+    keep = 1.0 - settings.limit_headroom
+    return tuple(np.asarray(a, dtype) for a in (vel, tau, keep * vel, keep * tau))
+
+
+def _margin(peak, limit):
+    """``min_j 1 - peak_j / limit_j`` over ``peak (C, J)``; 1 where no joint has a limit."""
+    return jnp.min(jnp.where(jnp.isfinite(limit), 1.0 - peak / limit, 1.0), axis=1)
+
+
 def build_problem(
     dyn: Dynamics,
     db: Database,
@@ -422,19 +535,67 @@ def finish_motion(
     boundary: Boundary,
     reach: Reach,
     targets,
+    max_duration=None,
 ) -> OnlineResult:
-    """Steps 3-5: interpolation (eq. 1-2), joint limits, derivatives, torques. Pure."""
+    """Steps 3-6: interpolation (eq. 1-2), joint limits, derivatives, torques, time scaling.
+
+    ``max_duration (C,)`` [s]: the time allowed (None: `MAX_DURATION`); a motion that needs
+    longer to stay within the velocity and torque limits of ``dyn.robot`` is returned at
+    ``max_duration`` with ``ok`` False. Pure.
+    """
     interp = compile_interpolation(basis, boundary, grid, settings.n_components)
     q, excess, fallback = enforce_limits(basis, boundary, grid, interp.q, lower, upper, settings)
-    dur = boundary.duration
-    qd, qdd = derivatives(grid, q, dur)
-    tau = jax.vmap(jax.vmap(dyn.inverse))(q, qd, qdd)
+    asked = boundary.duration
+    top = jnp.full_like(asked, MAX_DURATION) if max_duration is None else max_duration
+    top = jnp.asarray(top, q.dtype)
+    vel_lim, tau_lim, vel_use, tau_use = (
+        jnp.asarray(a, q.dtype) for a in usable_limits(dyn.robot, settings)
+    )
+    inv = jax.vmap(jax.vmap(dyn.inverse))
+
+    def at(dur):
+        qd, qdd = derivatives(grid, q, dur)
+        return qd, qdd, inv(q, qd, qdd)
+
+    def usage(qd, tau):  # (C, T, J): share of the usable limit, torque and velocity
+        return jnp.abs(tau) / tau_use, jnp.abs(qd) / vel_use
+
+    qd, qdd, tau = at(asked)
+    over = jnp.max(jnp.maximum(*usage(qd, tau)), axis=(1, 2)) > 1.0  # NaN: not over
+
+    def stretch(_):
+        law = time_law(dyn, grid, q)
+        scan, iters = settings.scaling_scan, settings.scaling_iters
+        needed = shortest_duration(law, asked, vel_use, tau_use, scan, iters)
+        needed = jnp.where(over, needed, asked)
+        dur = jnp.minimum(needed, jnp.maximum(top, asked))
+        return (needed, dur, *at(dur))
+
+    # Most motions are within their limits: skip the work (a branch: C is a batch axis here).
+    needed, dur, qd, qdd, tau = jax.lax.cond(
+        jnp.any(over), stretch, lambda _: (asked, asked, qd, qdd, tau), None
+    )
+    use_tau, use_vel = usage(qd, tau)
+    kind = (use_vel > use_tau).astype(jnp.int32)  # (C, T, J)
+    use = jnp.maximum(use_tau, use_vel).reshape(q.shape[0], -1)
+    flat = jnp.argmax(use, axis=1)
+    t_idx, j_idx = flat // q.shape[2], flat % q.shape[2]
+    pick = jnp.arange(q.shape[0])
+    worst_kind = kind[pick, t_idx, j_idx]
+    worst_value = jnp.where(
+        worst_kind == VELOCITY, jnp.abs(qd[pick, t_idx, j_idx]), jnp.abs(tau[pick, t_idx, j_idx])
+    )
+    peak_tau, peak_vel = jnp.max(jnp.abs(tau), axis=1), jnp.max(jnp.abs(qd), axis=1)
+    within = jnp.all(peak_tau <= tau_lim, axis=1) & jnp.all(peak_vel <= vel_lim, axis=1)
+    within_time = needed <= jnp.maximum(top, asked)
+    dur = jnp.asarray(dur, q.dtype)
     cost = jax.vmap(functools.partial(cost_from_torques, grid))(tau, dur)
     hand = jax.vmap(lambda x: dyn.site_pose(x)[0])(q[:, -1])
     target = jnp.asarray(targets, q.dtype)
     hand_error = jnp.linalg.norm(hand - target, axis=-1)
     finite = jnp.all(jnp.isfinite(tau), axis=(1, 2)) & jnp.all(jnp.isfinite(qdd), axis=(1, 2))
     inside = jnp.all((q >= lower) & (q <= upper), axis=(1, 2))
+    room = jnp.minimum(q - lower, upper - q)  # inf for a continuous joint
     return OnlineResult(
         t=jnp.asarray(grid.s, q.dtype)[None, :] * dur[:, None],
         q=q,
@@ -450,10 +611,20 @@ def finish_motion(
         n_inside=reach.n_inside,
         limit_excess=excess,
         fallback=fallback,
-        bc_residual=boundary_residual(grid, q, boundary),
+        bc_residual=boundary_residual(grid, q, boundary._replace(duration=dur)),
         cost=cost,
+        duration_asked=asked,
+        duration_needed=needed,
+        within_time=within_time,
+        torque_margin=_margin(peak_tau, tau_lim),
+        velocity_margin=_margin(peak_vel, vel_lim),
+        joint_margin=jnp.min(room, axis=(1, 2)),
+        worst_joint=j_idx.astype(jnp.int32),
+        worst_kind=worst_kind,
+        worst_value=worst_value,
+        worst_time=jnp.asarray(grid.s, q.dtype)[t_idx] * dur,
         reachable=reach.reachable,
-        ok=reach.reachable & finite & inside & jnp.isfinite(hand_error),
+        ok=reach.reachable & finite & inside & within & within_time & jnp.isfinite(hand_error),
     )
 
 
@@ -539,8 +710,10 @@ def check_query(robot: Robot, targets, duration=None, q_start=None):
         dur = np.broadcast_to(np.asarray(duration, np.float64), (c,)).copy()
         if not (np.isfinite(dur).all() and (dur > 0).all()):
             raise UserError(f"duration: expected a number > 0 [s], got {duration!r}")
-        if (dur > 60.0).any():
-            raise UserError(f"duration: expected at most 60 s, got {float(dur.max()):g}")
+        if (dur > MAX_DURATION).any():
+            raise UserError(
+                f"duration: expected at most {MAX_DURATION:g} s, got {float(dur.max()):g}"
+            )
         dur = dur.astype(np.float32)
     if q_start is None:
         q0 = np.broadcast_to(np.asarray(robot.rest, np.float32), (c, j)).copy()
@@ -693,3 +866,78 @@ def load_online_model(
         source=str(path),
         settings_source=settings_source,
     )
+
+
+def _limit_figure(robot: Robot, motion: OnlineResult, i: int, settings: OnlineSettings) -> str:
+    """'joint 'elbow' needs 7.2 rad/s at t = 0.31 s into the motion; its limit is 6 rad/s (5.7
+    usable with 5 % headroom)' for motion ``i`` (numpy) at its duration."""
+    j, kind = int(motion.worst_joint[i]), int(motion.worst_kind[i])
+    name = robot.joint_names[j]
+    if kind == VELOCITY:
+        what, unit, limit = "speed", "rad/s", float(robot.velocity_limit[j])
+    else:
+        what, unit, limit = "torque", "N m", float(robot.torque_limit[j])
+    usable = (1.0 - settings.limit_headroom) * limit
+    return (
+        f"joint {name!r} needs {float(motion.worst_value[i]):.4g} {unit} of {what} at t = "
+        f"{float(motion.worst_time[i]):.3f} s into the motion against a limit of {limit:.4g} "
+        f"{unit} ({usable:.4g} usable with {settings.limit_headroom:.0%} headroom)"
+    )
+
+
+def explain_unusable(
+    robot: Robot, motion: OnlineResult, i: int, settings: OnlineSettings, window: str = ""
+) -> str:
+    """Why motion ``i`` of a numpy `OnlineResult` is not usable, in one line (with the figures
+    of the binding velocity or torque limit). ``window``: what bounds its duration, e.g.
+    "between the reaction time and the ball's arrival" (default: `MAX_DURATION`)."""
+    if bool(motion.ok[i]) or not bool(motion.reachable[i]):
+        return "the motion is usable" if bool(motion.ok[i]) else "the target is not reachable"
+    needed, dur = float(motion.duration_needed[i]), float(motion.duration[i])
+    within = (
+        motion.torque_margin[i] >= 0 and motion.velocity_margin[i] >= 0 and motion.within_time[i]
+    )
+    if within or not np.isfinite(motion.worst_value[i]):
+        return "the generated motion is not usable (non-finite or outside the joint limits)"
+    figure = _limit_figure(robot, motion, i, settings)
+    if not np.isfinite(needed):
+        return (
+            f"no motion within the velocity and torque limits: even in {dur:.3f} s (the longest "
+            f"allowed{', ' + window if window else ''}) {figure}"
+        )
+    return (
+        f"the motion needs {needed:.3f} s to stay within the velocity and torque limits but only "
+        f"{dur:.3f} s are available{' ' + window if window else ''}: in {dur:.3f} s {figure}"
+    )
+
+
+def describe_limits(robot: Robot, motion: OnlineResult, i: int) -> dict[str, str]:
+    """Summary rows of motion ``i`` (numpy): its time scaling and its limit margins."""
+    asked, dur = float(motion.duration_asked[i]), float(motion.duration[i])
+    rows = {}
+    if dur > asked:
+        j, kind = int(motion.worst_joint[i]), int(motion.worst_kind[i])
+        which = "speed" if kind == VELOCITY else "torque"
+        rows["time scaling"] = (
+            f"stretched from {asked:.3f} s to {dur:.3f} s ({which} limit of joint "
+            f"{robot.joint_names[j]!r})"
+        )
+    room = float(motion.joint_margin[i])
+    rows["limit margins"] = (
+        f"torque {float(motion.torque_margin[i]):.3f}, speed "
+        f"{float(motion.velocity_margin[i]):.3f} (1 - peak/limit), joint range "
+        + (f"{room:.3f} rad" if np.isfinite(room) else "unlimited")
+    )
+    return rows
+
+
+def limit_meta(motion: OnlineResult, i: int) -> dict:
+    """The margins and the time scaling of motion ``i`` (numpy) for a trajectory file's meta."""
+    room = float(motion.joint_margin[i])
+    return {
+        "duration_asked": float(motion.duration_asked[i]),
+        "time_scaled": bool(float(motion.duration[i]) > float(motion.duration_asked[i])),
+        "torque_margin": float(motion.torque_margin[i]),
+        "velocity_margin": float(motion.velocity_margin[i]),
+        "joint_limit_margin": room if np.isfinite(room) else None,
+    }

@@ -7,8 +7,10 @@
 come from its ``config.yaml``). The output's format follows its suffix or ``--format``
 (`export`). An unreachable target or an uncatchable ball is a `UserError` (one line ``error:
 ...``, exit status 2) that says how far the reachable region is; ``--nearest`` takes the nearest
-reachable point instead. Nothing is written unless the motion is finite and inside the joint
-limits.
+reachable point instead. Nothing is written unless the motion is finite and inside the joint,
+velocity and torque limits: a motion too fast for them is slowed down (`online`, time scaling; the
+summary says so), and one that no duration allowed can bring within them is a `UserError` that
+names the joint, the speed or torque it needs against its limit, and when.
 
 The lead's ``cli.build_parser`` calls `add_online_parsers` on its subparsers.
 """
@@ -81,14 +83,13 @@ def _print_table(rows: dict) -> None:
         print(f"{key:<{width}}  {value}")
 
 
-def _write(args, fmt, model, motion, i: int, meta: dict) -> Path:
+def _write(args, fmt, model, motion, i: int, meta: dict, window: str = "") -> Path:
     from evojax_motion.export import make_trajectory_data, write_trajectory
+    from evojax_motion.online import explain_unusable
 
     if not bool(motion.ok[i]):
-        raise UserError(
-            "the generated motion is not usable (non-finite or outside the joint limits); "
-            "nothing written"
-        )
+        why = explain_unusable(model.robot, motion, i, model.settings, window)
+        raise UserError(f"{why}; nothing written")
     data = make_trajectory_data(
         motion.t[i],
         motion.q[i],
@@ -102,6 +103,8 @@ def _write(args, fmt, model, motion, i: int, meta: dict) -> Path:
 
 
 def _motion_meta(model, motion, i: int) -> dict:
+    from evojax_motion.online import limit_meta
+
     return {
         "database": model.source,
         "robot": model.robot.name,
@@ -112,6 +115,7 @@ def _motion_meta(model, motion, i: int) -> dict:
         "hand_error": float(motion.hand_error[i]),
         "limit_excess_before_projection": float(motion.limit_excess[i]),
         "limit_fallback": bool(motion.fallback[i]),
+        **limit_meta(motion, i),
     }
 
 
@@ -154,7 +158,7 @@ def _generate_one(opened, target, duration, q_start):
 
 def cmd_generate(args) -> int:
     """``evojax-motion generate``: one motion to ``--target``; exit 0, or `UserError`."""
-    from evojax_motion.online import nearest_reachable
+    from evojax_motion.online import describe_limits, nearest_reachable
 
     fmt = _check_out(args)
     from evojax_motion.compile_cache import enable_compile_cache
@@ -192,6 +196,7 @@ def cmd_generate(args) -> int:
             "cost (eq. 5)": f"{float(motion.cost[0]):.4g} N^2 m^2 s",
             "peak |tau|": f"{float(np.abs(motion.tau[0]).max()):.3f} N m",
             "joint limits": _limits_line(motion, 0),
+            **describe_limits(model.robot, motion, 0),
             "neighbours": f"{int(motion.n_inside[0])} within the radius ({model.settings_source})",
             "written to": f"{out} ({fmt})",
         }
@@ -226,6 +231,7 @@ def cmd_catch(args) -> int:
     import jax
 
     from evojax_motion.catching import explain_plan, validate_ball
+    from evojax_motion.online import describe_limits
 
     fmt = _check_out(args)
     p0, v0 = validate_ball(args.ball)
@@ -256,7 +262,8 @@ def cmd_catch(args) -> int:
             time_margin=float(plan.time_margin[0]),
             depth=float(plan.depth[0]),
         )
-    out = _write(args, fmt, model, motion, 0, meta)
+    window = "between the reaction time and the ball's arrival" if note is None else ""
+    out = _write(args, fmt, model, motion, 0, meta, window)
     print(line if note is None else f"note: {line}; {note}")
     _print_table(
         {
@@ -266,6 +273,7 @@ def cmd_catch(args) -> int:
             "hand error": f"{float(motion.hand_error[0]) * 1e3:.3f} mm",
             "cost (eq. 5)": f"{float(motion.cost[0]):.4g} N^2 m^2 s",
             "joint limits": _limits_line(motion, 0),
+            **describe_limits(model.robot, motion, 0),
             "written to": f"{out} ({fmt})",
         }
     )
@@ -310,10 +318,10 @@ def _nearest_attempt(opened, catch, plan):
         note = f"moving to the reachable point {_vec(point)} m, {dist:.3f} m from its path"
     t_ball = float(plan.times[0, k])
     duration = float(np.clip(t_ball - catch.reaction_time, d_nat / catch.speedup, d_nat))
-    start = max(catch.reaction_time, t_ball - duration)
     motion = _generate_one(opened, point, duration, None)
     if not bool(motion.reachable[0]):
         raise UserError(f"the nearest point {_vec(point)} m could not be reached; nothing written")
+    start = max(catch.reaction_time, t_ball - float(motion.duration[0]))  # after time scaling
     return motion._replace(t=motion.t + start), note
 
 

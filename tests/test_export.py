@@ -44,15 +44,15 @@ def test_round_trip_is_exact(tmp_path, fmt, dtype):
     assert back.joint_names == NAMES
     for name in ("t", "q", "qd", "qdd", "tau"):
         np.testing.assert_array_equal(np.asarray(getattr(back, name), dtype), getattr(data, name))
-    if fmt != "csv":
-        assert back.meta == {"target": [0.1, 0.2, 0.3]}
+    assert back.meta == {"target": [0.1, 0.2, 0.3]}
 
 
 def test_csv_layout(tmp_path):
     path = write_trajectory(tmp_path / "traj.csv", _data())
     lines = path.read_text().splitlines()
-    assert lines[0] == ",".join(column_names(NAMES))
-    assert len(lines) == 6 and all(len(row.split(",")) == 9 for row in lines)
+    assert lines[0] == "# target: [0.1, 0.2, 0.3]"  # the meta, as comments before the header
+    assert lines[1] == ",".join(column_names(NAMES))
+    assert len(lines) == 7 and all(len(row.split(",")) == 9 for row in lines[1:])
 
 
 def test_nan_is_never_written(tmp_path):

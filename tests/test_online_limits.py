@@ -1,0 +1,222 @@
+"""Velocity and torque limits of online motions (online.py's time scaling, catching.py, the CLI):
+the scaling's search against closed forms, a too-fast motion slowed to the limits and checked by
+C MuJoCo's float64 inverse dynamics, and motions that no allowed duration brings within the
+limits refused with their figures (exit status 2, nothing written)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from online_support import (
+    BASIS,
+    CATCH_KW,
+    SETTINGS,
+    cli_session,
+    mj_inverse_torques,
+    online_env,
+    query,
+)
+
+from evojax_motion.online import TimeLaw, explain_unusable, shortest_duration
+
+HEADROOM = SETTINGS.limit_headroom
+TOL_SEARCH = 1e-5  # relative: the scan + 24 bisection steps vs a closed-form shortest duration
+TOL_USAGE = 2e-3  # the binding limit's use at the chosen duration: float32 RNEA vs float64 C
+SHORTER = 0.98  # a duration 2 % shorter than the chosen one must break the usable limits
+GRAVITY = np.array([0.0, 0.0, -9.81], np.float32)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return online_env()
+
+
+@pytest.fixture(scope="module")
+def db_file(tmp_path_factory, env):
+    from evojax_motion.database import save_database
+
+    path = tmp_path_factory.mktemp("limits") / "db.npz"
+    save_database(path, env.db, env.meta)
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _no_compile_cache(monkeypatch):
+    monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
+
+
+def _usage(robot, q, qd, qdd) -> float:
+    """Largest share of a velocity or torque limit, by C MuJoCo's float64 mj_inverse."""
+    tau = mj_inverse_torques(robot, q, qd, qdd)
+    return float(
+        max(
+            np.max(np.abs(tau) / robot.torque_limit),
+            np.max(np.abs(qd) / robot.velocity_limit),
+        )
+    )
+
+
+def _numpy_derivatives(grid, q, duration):
+    """``qd, qdd`` of ``q (T, J)`` at ``duration`` from the grid's operators, in float64."""
+    d1, d2 = np.asarray(grid.d1, np.float64), np.asarray(grid.d2, np.float64)
+    q = np.asarray(q, np.float64)
+    return d1 @ q / duration, d2 @ q / duration**2
+
+
+def test_shortest_duration_matches_closed_forms():
+    """Inertial torque ``a w^2`` against a limit L: D* = sqrt(|a| / L); a velocity slope s
+    against V: D* = |s| / V; a constant (gravity) torque over L: none (inf); a motion already
+    within its limits keeps its duration."""
+    vel_use = np.array([4.0, np.inf], np.float32)
+    tau_use = np.array([10.0, 5.0], np.float32)
+    zero = np.zeros((4, 3, 2), np.float32)
+    c0, c2, slope = zero.copy(), zero.copy(), zero.copy()
+    c2[0, 1, 1] = -45.0  # torque-bound: D* = 3 s
+    slope[1, 2, 0] = 6.0  # velocity-bound: D* = 1.5 s
+    c0[2, 0, 0] = 12.0  # gravity over 10 N m: no duration helps
+    c2[3, 0, 0] = 2.0  # within at the asked 1 s: stays 1 s
+    law = TimeLaw(*(jnp.asarray(a) for a in (c0, zero, c2, slope)))
+    asked = jnp.asarray([0.01, 0.01, 0.01, 1.0], jnp.float32)
+    fn = jax.jit(shortest_duration, static_argnums=(4, 5))
+    got = np.asarray(fn(law, asked, vel_use, tau_use, 32, 24))
+    np.testing.assert_allclose(got[[0, 1, 3]], [3.0, 1.5, 1.0], rtol=TOL_SEARCH)
+    assert np.isinf(got[2])
+
+
+def test_too_fast_motion_is_slowed_to_the_limits(env):
+    """``duration = 1 ms`` asks for kN m and thousands of rad/s: the result is the same path,
+    slowed down just enough; C MuJoCo's float64 inverse dynamics of its rows confirms it is
+    within every limit, uses (1 - headroom) of the binding one, and breaks it 2 % faster."""
+    targets = env.db.condition[:3] + 0.01
+    plain = query(env, targets)
+    fast = query(env, targets, duration=0.001)
+    assert fast.ok.all() and fast.within_time.all()
+    np.testing.assert_array_equal(fast.duration_asked, np.float32(0.001))
+    assert (fast.duration > 0.1).all()
+    np.testing.assert_allclose(fast.q, plain.q, atol=1e-6)  # slowed down, not reshaped
+    for i in range(3):
+        q, qd, qdd = fast.q[i], fast.qd[i], fast.qdd[i]
+        use = _usage(env.robot, q, qd, qdd)
+        assert abs(use - (1.0 - HEADROOM)) <= TOL_USAGE
+        shorter = SHORTER * float(fast.duration[i])
+        assert _usage(env.robot, q, *_numpy_derivatives(env.grid, q, shorter)) > 1 - HEADROOM
+        # the 1 ms motion itself, as it would have been
+        over = _usage(env.robot, q, *_numpy_derivatives(env.grid, q, 0.001))
+        assert over > 1e3
+        # the margins it reports are those of its rows
+        tau = mj_inverse_torques(env.robot, q, qd, qdd)
+        margin = np.min(1.0 - np.abs(tau).max(0) / env.robot.torque_limit)
+        np.testing.assert_allclose(fast.torque_margin[i], margin, atol=TOL_USAGE)
+    # motions already within the limits are left alone, with their margins
+    assert (plain.duration == plain.duration_asked).all() and (plain.torque_margin > 0).all()
+
+
+def test_cli_generate_slows_a_too_fast_motion(env, db_file, tmp_path, capsys, monkeypatch):
+    """``generate --duration 0.001`` writes a feasible, slower motion and says so; the CSV's
+    comment lines carry the margins."""
+    from test_online import _cli
+
+    from evojax_motion import online_cli
+    from evojax_motion.export import read_trajectory
+
+    opened = cli_session(env, db_file)
+    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    target = [f"{v:.4f}" for v in env.db.condition[3] + 0.01]
+    out = tmp_path / "fast.csv"
+    argv = ["generate", "--db", str(db_file), "--target", *target, "--duration", "0.001"]
+    assert _cli([*argv, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "stretched from 0.001 s to" in text and "limit margins" in text
+    data = read_trajectory(out)
+    assert data.meta["time_scaled"] and data.meta["duration_asked"] == pytest.approx(0.001)
+    assert data.t[-1] > 0.1
+    assert min(data.meta["torque_margin"], data.meta["velocity_margin"]) >= HEADROOM - TOL_USAGE
+    assert "# torque_margin: " in out.read_text() and "# velocity_margin: " in out.read_text()
+    assert _usage(env.robot, data.q, data.qd, data.qdd) <= 1.0
+
+
+def _throw_through(point, t_hit, p0):
+    """Release velocity of a vacuum throw from ``p0`` that passes ``point`` at ``t_hit``."""
+    return ((np.asarray(point) - p0 - 0.5 * GRAVITY * t_hit**2) / t_hit).astype(np.float32)
+
+
+def test_catch_that_cannot_arrive_in_time_exits_2_with_figures(
+    env, db_file, tmp_path, capsys, monkeypatch
+):
+    """A planner allowed to rush (speedup 4) picks a catch the limits cannot make in time: the
+    motion would have to start before the reaction time. The catch is refused with the time it
+    needs, the time it has, and the binding joint's figures; nothing is written."""
+    from test_online import _cli
+
+    from evojax_motion import online_cli
+    from evojax_motion.catching import CatchSettings, make_catcher
+
+    rushed = CatchSettings(**CATCH_KW, speedup=4.0)
+    fn = make_catcher(env.robot, env.dyn, env.grid, BASIS, SETTINGS, rushed)
+    p0 = np.array([3.0, -0.2, 1.6], np.float32)
+    v0 = _throw_through(env.db.condition[5], 0.4, p0)
+    rest = np.asarray(env.robot.rest, np.float32)[None]
+    plan, motion = jax.device_get(fn(env.db_device, p0[None], v0[None], rest))
+    available = float(plan.catch_time[0]) - rushed.reaction_time
+    assert plan.feasible[0] and not motion.ok[0] and not motion.within_time[0]
+    assert float(motion.duration_needed[0]) > available + 0.05
+    np.testing.assert_allclose(motion.duration[0], available, rtol=1e-6)
+    np.testing.assert_allclose(motion.t[0, 0], rushed.reaction_time, atol=1e-5)
+
+    opened = cli_session(env, db_file)
+    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    # the command line's catch settings for --horizon 1.2, served by the rushed planner
+    monkeypatch.setitem(online_cli._CATCHERS, (id(opened[0]), CatchSettings(**CATCH_KW)), fn)
+    out = tmp_path / "late.csv"
+    ball = [f"{x:.6f}" for x in np.r_[p0, v0]]
+    argv = ["catch", "--db", str(db_file), "--ball", *ball, "--horizon", "1.2", "--out", str(out)]
+    assert _cli(argv) == 2
+    msg = capsys.readouterr().out
+    needed = f"{float(motion.duration_needed[0]):.3f} s"
+    assert msg.startswith(f"error: the motion needs {needed} to stay within")
+    assert f"only {available:.3f} s are available between the reaction time" in msg
+    joint = env.robot.joint_names[int(motion.worst_joint[0])]
+    assert f"joint {joint!r} needs" in msg and "against a limit of" in msg
+    assert "nothing written" in msg and not out.exists()
+
+
+@pytest.mark.slow
+def test_gravity_over_a_torque_limit_has_no_motion(env, db_file, tmp_path, capsys, monkeypatch):
+    """A shoulder too weak to hold the raised arm (3 N m against ~10 N m of gravity): no
+    duration helps; the refusal names the joint and the torque it needs."""
+    from test_online import _cli
+
+    from evojax_motion import online_cli
+    from evojax_motion.dynamics import make_dynamics
+    from evojax_motion.online import MAX_DURATION, OnlineModel, make_online_generator
+    from evojax_motion.robot import robot_from_mjcf_text
+
+    mjcf = env.robot.mjcf.replace(
+        'range="-0.872665 2.967060"\n               actuatorfrcrange="-80 80"',
+        'range="-0.872665 2.967060"\n               actuatorfrcrange="-3 3"',
+    )
+    assert mjcf != env.robot.mjcf
+    weak = robot_from_mjcf_text("weak", mjcf, env.robot.joint_names, env.robot.site_name)
+    gen = make_online_generator(weak, make_dynamics(weak), env.grid, BASIS, SETTINGS)
+    targets = env.db.condition[3:4] + 0.01
+    dur = np.full(1, np.nan, np.float32)
+    rest = np.asarray(weak.rest, np.float32)[None]
+    motion = jax.device_get(gen(env.db_device, targets, dur, rest))
+    assert motion.reachable[0] and not motion.ok[0] and np.isinf(motion.duration_needed[0])
+    assert weak.joint_names[int(motion.worst_joint[0])] == "shoulder_pitch"
+    assert float(motion.worst_value[0]) > 3.0 and motion.worst_kind[0] == 0
+    np.testing.assert_allclose(motion.duration[0], MAX_DURATION)
+    why = explain_unusable(weak, motion, 0, SETTINGS)
+    assert why.startswith("no motion within the velocity and torque limits: even in 60.000 s")
+
+    model = cli_session(env, db_file)[0]
+    opened = (OnlineModel(**{**model.__dict__, "robot": weak}), gen, None)
+    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    out = tmp_path / "weak.npz"
+    target = [f"{v:.4f}" for v in targets[0]]
+    assert _cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 2
+    msg = capsys.readouterr().out
+    assert "joint 'shoulder_pitch' needs" in msg and "N m of torque" in msg
+    assert "against a limit of 3 N m" in msg and not out.exists()
