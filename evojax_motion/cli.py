@@ -84,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_online_parsers(sub)
 
     add_report_parser(sub)
+    __import__("evojax_motion.robot_cli", fromlist=["_"]).add_robot_parser(sub)
     return parser
 
 

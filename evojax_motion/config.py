@@ -37,12 +37,21 @@ INT_MIN, INT_MAX = -(2**31), 2**31 - 1
 
 @dataclass(frozen=True)
 class RobotConfig:
-    """Which robot: a shipped name, or an MJCF path with its controlled joints and hand site."""
+    """Which robot: a shipped name, or an MJCF path with its controlled joints and end effector.
+
+    ``joints``: None = the hinge and slide joints from the root to the end effector.
+    ``end_effector``: a site or body name (``site``: the older name for a site). ``None``: the
+    model's only site. ``end_effector_offset``: [m] in its frame. ``velocity_limits``: [rad/s]
+    a mapping joint: limit, or one per joint. Checked by `robot.load_robot`.
+    """
 
     name: str = "mahru_arm"
     mjcf: str | None = None
     joints: tuple[str, ...] | None = None
     site: str | None = None
+    end_effector: str | None = None
+    end_effector_offset: tuple[float, ...] | None = None
+    velocity_limits: tuple[float, ...] | dict[str, float] | None = None
 
 
 @dataclass(frozen=True)

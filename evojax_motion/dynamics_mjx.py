@@ -14,11 +14,13 @@ this one is the reference it is tested against.
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from evojax_motion.dynamics_rnea import BackendFunctions
@@ -41,6 +43,19 @@ def _cast_floats(tree, dtype):
     return jax.tree.map(cast, tree)
 
 
+def _without_meshes(m: mujoco.MjModel) -> mujoco.MjModel:
+    """A copy of ``m`` whose mesh geoms are spheres: the same ``qpos``, bodies, inertias and
+    sites. Geoms matter for contacts only, which the dynamics leave out; MJX would otherwise
+    prepare every mesh for collisions (seconds, and warnings, for a published arm's meshes)."""
+    if not np.any(m.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH)):
+        return m
+    m = copy.copy(m)
+    mesh = m.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH)
+    m.geom_type[mesh] = int(mujoco.mjtGeom.mjGEOM_SPHERE)
+    m.geom_dataid[mesh] = -1
+    return m
+
+
 def make_mjx(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
     """Build MJX single-sample functions with the same signatures as `make_rnea`.
 
@@ -49,7 +64,7 @@ def make_mjx(robot: Any, dtype: Any = jnp.float32) -> BackendFunctions:
     """
     mjx = _import_mjx()
     m = robot.mj_model
-    model = _cast_floats(mjx.put_model(m, impl="jax"), dtype)
+    model = _cast_floats(mjx.put_model(_without_meshes(m), impl="jax"), dtype)
     data0 = _cast_floats(mjx.make_data(model, impl="jax"), dtype)
     qpos_adr = np.asarray(robot.qpos_adr)
     dof_adr = np.asarray(robot.dof_adr)

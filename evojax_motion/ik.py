@@ -18,8 +18,9 @@ joints toward a preferred (comfortable) posture ``q_pref`` with per-joint weight
 (``w_pref``). Joint limits: the
 joints whose step would leave ``[lower, upper]`` are clamped onto their limit and removed from the
 Jacobian, and the free joints re-solve the remaining error (one pass of the clamping loop of
-Baerlocher & Boulic 2004); a final clip keeps every iterate inside the box. Steps are scaled to at
-most ``max_step`` rad (a trust region).
+Baerlocher & Boulic 2004); a final clip keeps every iterate inside the box. Infinite limits (a
+continuous joint) are never reached, so such a joint is never clamped and its angle is not
+wrapped. Steps are scaled to at most ``max_step`` rad (a trust region).
 
 Pure single-sample code inside: ``vmap`` over the batch, ``lax.fori_loop`` over a fixed iteration
 count (deterministic, jit-friendly), ``lax.scan`` over a path's samples with warm starts.
@@ -179,7 +180,8 @@ def solve_ik(
       dyn: the robot's ``Dynamics`` (its ``site_pose`` is the forward kinematics).
       targets: ``(B, 3)`` site positions [m].
       q_init: ``(B, J)`` starting postures (clipped into the limits).
-      lower, upper: ``(J,)`` or ``(B, J)`` joint limits [rad]; every iterate stays inside.
+      lower, upper: ``(J,)`` or ``(B, J)`` joint limits [rad]; every iterate stays inside. A
+        continuous joint has ``-inf``/``+inf`` (`Robot.lower`/`upper`): it is never clamped.
       q_pref: ``(J,)`` or ``(B, J)`` preferred posture of the null-space term (default ``q_init``:
         the solution stays near the start in the redundant directions).
       w_pref: scalar, ``(J,)`` or ``(B, J)`` null-space pull per iteration, each in (0, 1]. At

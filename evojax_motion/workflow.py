@@ -23,13 +23,12 @@ from evojax_motion.database import (
 )
 from evojax_motion.dynamics import Dynamics, make_dynamics
 from evojax_motion.errors import UserError
-from evojax_motion.robot import Robot, load_robot
+from evojax_motion.robot import Robot, robot_from_config
 
 
 def make_robot(cfg: Config) -> Robot:
     """The robot named by ``cfg.robot`` (a shipped name, or an MJCF path + joints + site)."""
-    spec = cfg.robot.mjcf if cfg.robot.mjcf is not None else cfg.robot.name
-    return load_robot(spec, joints=cfg.robot.joints, site=cfg.robot.site)
+    return robot_from_config(cfg.robot)
 
 
 def make_robot_dynamics(cfg: Config) -> tuple[Robot, Dynamics]:

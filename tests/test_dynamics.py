@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from evojax_motion.dynamics import BACKENDS, Dynamics, make_dynamics
-from evojax_motion.dynamics_rnea import FORMS, make_rnea
+from evojax_motion.dynamics_rnea import FORMS, default_form, make_rnea
 from evojax_motion.errors import UserError
 from evojax_motion.robot import load_robot, robot_from_mjcf_text
 
@@ -39,17 +39,26 @@ ROBOTS = {
     "arm6": lambda: load_robot("arm6"),  # its gripper slide "finger" is not controlled
     "tree_arm": lambda: load_robot(ASSETS / "tree_arm.xml", joints=TREE_JOINTS, site="tip"),
 }
+# Published arms as users bring them (../shared/robots, skipped where absent) and a small model
+# with continuous joints: the default RNEA form in float32 and float64 only (compile time).
+SHARED_ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
+MORE_ROBOTS = {
+    "continuous_arm": ASSETS / "continuous_arm.xml",  # continuous hinges, armature, damping
+    "kinova_gen3": SHARED_ROBOTS / "kinova_gen3" / "gen3.xml",  # 4 continuous joints, meshes
+    "xarm7_gripper": SHARED_ROBOTS / "ufactory_xarm7" / "xarm7.xml",  # armature, damping
+}
+MORE_SITES = {"xarm7_gripper": "link_tcp"}  # the others have one site
 
 
 class Case:
     """A robot, random states and the C MuJoCo references for them (all float64 numpy)."""
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, robot=None):
         self.name = name
-        self.robot = ROBOTS[name]()
+        self.robot = ROBOTS[name]() if robot is None else robot
         rng = np.random.default_rng(sum(map(ord, name)))
         n, j = N_STATES, self.robot.n_joints
-        self.q = rng.uniform(self.robot.lower, self.robot.upper, (n, j))
+        self.q = self.robot.sample_postures(rng, n)  # continuous joints: one turn about rest
         self.qd = QD_SCALE * rng.standard_normal((n, j))
         self.qdd = QDD_SCALE * rng.standard_normal((n, j))
         m = self.robot.mj_model
@@ -101,6 +110,29 @@ def case(request) -> Case:
 
 def rel_err(x, ref) -> float:
     return float(np.abs(x - ref).max() / np.abs(ref).max())
+
+
+@pytest.fixture(scope="module", params=list(MORE_ROBOTS))
+def more_case(request) -> Case:
+    path = MORE_ROBOTS[request.param]
+    if not path.is_file():
+        pytest.skip(f"{path} not found (the published robot models sit beside the repository)")
+    return Case(request.param, load_robot(path, end_effector=MORE_SITES.get(request.param)))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_more_models_match_mj_inverse(more_case, dtype):
+    """Continuous joints (q beyond +-pi included), published arms with meshes, armature and
+    damping: the default RNEA form against `mj_inverse` and `mj_kinematics`."""
+    out = more_case.outputs(f"rnea-{default_form()}", dtype)
+    robot = more_case.robot
+    if robot.continuous.any():  # the states reach past a half turn on the continuous joints
+        assert np.abs(more_case.q[:, robot.continuous]).max() > np.pi
+    tol = TOL_TAU_F32 if dtype == np.float32 else TOL_TAU_F64
+    tol_pos = TOL_SITE_POS_F32 if dtype == np.float32 else TOL_KIN_F64
+    assert np.abs(more_case.tau).max() > 1.0
+    assert rel_err(out["tau"], more_case.tau) <= tol
+    assert np.abs(out["pos"] - more_case.site_pos).max() <= tol_pos
 
 
 # The default RNEA form on CPU is "vector"; the "scalar" one (the default on GPUs) is checked

@@ -5,6 +5,8 @@ reachable targets under two posture preferences, starts outside tight per-row jo
 unreachable targets.
 """
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -202,3 +204,25 @@ def test_trajectory_tracks_a_path_smoothly(arm, batch):
     step_cm = np.max(np.linalg.norm(np.diff(paths, axis=1), axis=-1)) * 100
     steps = np.abs(np.diff(np.asarray(out.q), axis=1))
     assert np.max(steps) < MAX_STEP_ALONG_PATH * max(step_cm, 1.0)  # one smooth branch
+
+
+def test_continuous_joints_have_no_limits_in_ik():
+    """Continuous joints (limits -inf/+inf) pass through the clamping and clipping untouched:
+    targets of postures past a half turn are reached from starts 0.2 rad away, with finite
+    iterates, limited joints inside their limits and continuous ones not wrapped."""
+    robot = load_robot(Path(__file__).resolve().parent / "assets" / "continuous_arm.xml")
+    assert robot.continuous.any() and np.isinf(robot.lower[robot.continuous]).all()
+    dyn = make_dynamics(robot, backend="rnea")
+    fk = jax.jit(jax.vmap(lambda q: dyn.site_pose(q)[0]))
+    q_true = robot.sample_postures(np.random.default_rng(0), 16, margin=0.02).astype(np.float32)
+    targets = np.asarray(fk(q_true))
+    start = q_true + 0.2 * np.random.default_rng(1).choice([-1.0, 1.0], q_true.shape)
+    res = solve_ik(dyn, targets, start.astype(np.float32), robot.lower, robot.upper, iters=100)
+    q = np.asarray(res.q)
+    assert np.isfinite(q).all()
+    assert np.asarray(res.converged).all(), np.asarray(res.pos_error).max()
+    np.testing.assert_allclose(np.asarray(fk(q)), targets, atol=TOL_REACH)
+    limited = ~robot.continuous
+    assert (q[:, limited] >= robot.lower[limited] - TOL_LIMIT).all()
+    assert (q[:, limited] <= robot.upper[limited] + TOL_LIMIT).all()
+    assert np.abs(q[:, robot.continuous]).max() > np.pi  # beyond the half turn, not wrapped

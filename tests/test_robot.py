@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 from evojax_motion.errors import UserError
 from evojax_motion.robot import (
     MODELS_DIR,
+    REST_MARGIN,
     SHIPPED_ROBOTS,
     Robot,
     load_robot,
@@ -216,7 +217,10 @@ def test_joint_subset_order_and_slide_joint():
     np.testing.assert_allclose(robot.upper, [0.04, 2.617994, 2.96706])
     np.testing.assert_array_equal(robot.velocity_limit, [0.2, 3.0, 2.5])
     np.testing.assert_array_equal(robot.torque_limit, [20, 80, 150])
-    np.testing.assert_array_equal(robot.rest, [0.0, 0.9, 0.0])
+    # The keyframe puts the finger on its lower limit: the rest posture keeps REST_MARGIN of
+    # its range off it.
+    np.testing.assert_allclose(robot.rest, [REST_MARGIN * 0.04, 0.9, 0.0], rtol=1e-12)
+    assert "keyframe 'rest'" in robot.rest_source and "['finger']" in robot.rest_source
 
 
 def test_robot_from_mjcf_text_round_trip(mahru):
@@ -261,7 +265,11 @@ def test_defaults_for_a_user_file(tmp_path):
     robot = load_robot(path)
     assert robot.name == "my_arm" and robot.joint_names == ("j1",) and robot.site_name == "tip"
     assert robot.velocity_limit[0] == np.inf and robot.torque_limit[0] == np.inf
-    assert robot.rest[0] == 0.5  # no "rest" keyframe: qpos0 = 0 clipped into [0.5, 1.0]
+    assert robot.torque_limit_source == ("none",)
+    # No keyframe: qpos0 = 0 brought into [0.5, 1.0], REST_MARGIN of the range off the limit.
+    assert robot.rest[0] == pytest.approx(0.5 + REST_MARGIN * 0.5, rel=1e-12)
+    assert robot.rest_source.startswith("qpos0") and "['j1']" in robot.rest_source
+    assert robot.mjcf == path.read_text() and robot.files == (str(path),)  # kept verbatim
     # Constraints are switched off even though this MJCF leaves them on.
     assert robot.mj_model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
     assert load_robot(str(path)).joint_names == ("j1",)
@@ -295,7 +303,6 @@ SECOND_SITE = '<site name="other"/>'
             BARE.format(extra=BALL, tail=""),
             ["'shoulder_ball'", "ball", "hinge or slide"],
         ),
-        ("{file}", {}, BARE.format(extra=UNLIMITED, tail=""), ["'free_spin'", "no range"]),
         ("{file}", {}, BARE.format(extra=SECOND_SITE, tail=""), ["'tip'", "'other'", "site"]),
         ("{file}", {"site": "nope"}, BARE.format(extra="", tail=""), ["'nope'", "'tip'"]),
         (
@@ -335,6 +342,21 @@ def test_user_errors_name_the_item(tmp_path, spec, kwargs, xml, expected):
         assert part in message, (part, message)
     if xml is not None:
         assert str(path) in message
+
+
+def test_joint_without_range_is_continuous(tmp_path):
+    path = _write(tmp_path, BARE.format(extra=UNLIMITED, tail=""))
+    robot = load_robot(path, joints=("j1", "free_spin"), site="tip")
+    np.testing.assert_array_equal(robot.continuous, [False, True])
+    np.testing.assert_array_equal(robot.lower, [0.5, -np.inf])
+    np.testing.assert_array_equal(robot.upper, [1.0, np.inf])
+    assert robot.rest[1] == 0.0  # qpos0: a continuous joint has no limit to keep off
+    lo, hi = robot.posture_box(margin=0.1)
+    np.testing.assert_allclose(lo, [0.6, -np.pi])
+    np.testing.assert_allclose(hi, [0.9, np.pi])
+    q = robot.sample_postures(np.random.default_rng(0), 500, margin=0.1)
+    assert np.isfinite(q).all() and (q >= lo).all() and (q <= hi).all()
+    assert q[:, 1].min() < -3.0 and q[:, 1].max() > 3.0  # one turn about rest
 
 
 def test_ball_joint_beside_controlled_joints_is_allowed(tmp_path):
