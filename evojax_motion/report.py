@@ -59,7 +59,6 @@ BASIS_COMPONENTS = 4  # Fig. 4: "their first four dominant principal components"
 # the right), passing it THROW_SLACK [s] after a motion started at the reaction time would end.
 THROW_OFFSET = np.array([1.5, -0.3, 0.0])
 THROW_SLACK = 0.1
-GIF_ABOVE = 0.5  # [m] the animation frames the ball's path up to this above the catch point
 GIF_SPEED = 0.5  # playback speed of catch.gif (half speed)
 
 # figure file -> (title, run files it needs, caption)
@@ -440,12 +439,78 @@ def plot_basis(data: RunData, ctx: Context, path: Path, joint: str | None = None
     return _save(fig, path)
 
 
-def plot_tradeoff(metrics: list[dict], path: Path, baseline: dict | None = None) -> Path:
-    """Per generation: mean eq. 5 cost against mean ``human_deviation_deg``, in order.
+# Where a generation's label may go, relative to its point [points], in order of preference.
+LABEL_OFFSETS = ((4, 4), (4, -11), (-11, 4), (-11, -11), (6, -3), (-14, -3), (-3, 7), (-3, -14))
+MARKER_SIZE = 40.0  # [pt^2] the trade-off plot's points
+SAME_POINT_PX = 3.0  # consecutive generations this close on screen share one label ("3-4")
 
-    ``baseline`` (``summary.json``): its ``human_only_cost_mean`` is drawn at deviation 0, the
-    human-only interpolation of the same conditions (the starting point of the trade-off).
+
+def _generation_groups(gen, xy_px) -> list[tuple[str, int]]:
+    """Runs of consecutive generations at (nearly) the same screen point ``xy_px (G, 2)``:
+    ``[(label, index of the run's last point)]``, e.g. ``("3-4", 3)``."""
+    groups: list[tuple[str, int]] = []
+    start = None
+    for i in range(len(gen)):
+        if not np.isfinite(xy_px[i]).all():
+            start = None
+            continue
+        if start is None:
+            start = i
+        nxt = i + 1
+        same = nxt < len(gen) and np.hypot(*(xy_px[nxt] - xy_px[i])) <= SAME_POINT_PX
+        if not same:
+            first, last = gen[start], gen[i]
+            groups.append((str(first) if first == last else f"{first}-{last}", i))
+            start = None
+    return groups
+
+
+def label_points(ax, gen, x, y, marker_size: float = MARKER_SIZE, fontsize: float = 7.0) -> list:
+    """Label the points ``(x, y) (G,)`` with their generations ``gen (G,)`` without overlaps.
+
+    Consecutive generations at the same spot share a label ("3-4"). Each label takes the first
+    of `LABEL_OFFSETS` where it lies inside the axes and overlaps neither the legend, nor a
+    point's marker (scatter size ``marker_size`` [pt^2]), nor a label placed before it (the last
+    generation's first, then the first's, then in order); a label with no free place is left
+    out (the colour still tells the generation). Call after the axes' limits and size are
+    final. Returns the placed texts.
     """
+    from matplotlib.transforms import Bbox
+
+    fig = ax.figure
+    fig.canvas.draw()  # final limits and layout: screen positions of the points
+    renderer = fig.canvas.get_renderer()
+    xy = np.column_stack([x, y]).astype(float)
+    ok = np.isfinite(xy).all(axis=1)
+    xy_px = np.full_like(xy, np.nan)
+    if ok.any():
+        xy_px[ok] = ax.transData.transform(xy[ok])
+    groups = _generation_groups(np.asarray(gen), xy_px)
+    if len(groups) > 1:  # the last generation, then the first, then the rest
+        groups = [groups[-1], groups[0], *groups[1:-1]]
+    legend = ax.get_legend()
+    taken: list = [] if legend is None else [legend.get_window_extent(renderer)]
+    r = 0.5 * np.sqrt(marker_size) * fig.dpi / 72.0  # marker radius [px]
+    markers = [Bbox.from_bounds(u - r, v - r, 2 * r, 2 * r) for u, v in xy_px[ok]]
+    frame = ax.get_window_extent(renderer)
+    placed: list = []
+    for label, i in groups:
+        for dx, dy in LABEL_OFFSETS:
+            text = ax.annotate(
+                label, (x[i], y[i]), textcoords="offset points", xytext=(dx, dy), fontsize=fontsize
+            )
+            box = text.get_window_extent(renderer)
+            inside = frame.contains(box.x0, box.y0) and frame.contains(box.x1, box.y1)
+            if inside and not any(box.overlaps(b) for b in taken + markers):
+                placed.append(text)
+                taken.append(box)
+                break
+            text.remove()
+    return placed
+
+
+def tradeoff_figure(metrics: list[dict], baseline: dict | None = None):
+    """The figure of `plot_tradeoff` (a matplotlib ``Figure``, not yet saved)."""
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
 
@@ -455,17 +520,14 @@ def plot_tradeoff(metrics: list[dict], path: Path, baseline: dict | None = None)
         return np.array([np.nan if r.get(name) is None else r[name] for r in metrics], float)
 
     dev, cost = col("human_deviation_deg"), col("db_cost_mean")
-    fig, ax = plt.subplots(figsize=(6, 4.2))
+    fig, ax = plt.subplots(figsize=(6, 4.2), layout="constrained")
     human = (baseline or {}).get("human_only_cost_mean")
+    ax.plot(dev, cost, "-", color="0.6", lw=1, zorder=1, label="generations, in order")
     if human is not None:
         ax.plot([0.0], [human], "s", color="tab:blue", label="human-only interpolation")
         ax.plot([0.0, dev[0]], [human, cost[0]], ":", color="0.6", lw=1, zorder=1)
-        ax.legend(fontsize=8)
-    ax.plot(dev, cost, "-", color="0.6", lw=1, zorder=1)
-    sc = ax.scatter(dev, cost, c=gen, cmap="viridis", s=40, zorder=2)
-    for g, x, y in zip(gen, dev, cost):
-        if np.isfinite(x) and np.isfinite(y):
-            ax.annotate(str(g), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    ax.legend(fontsize=8)
+    sc = ax.scatter(dev, cost, c=gen, cmap="viridis", s=MARKER_SIZE, zorder=2)
     bar = fig.colorbar(sc, ax=ax, label="generation")
     bar.locator = MaxNLocator(integer=True)
     bar.update_ticks()
@@ -473,7 +535,24 @@ def plot_tradeoff(metrics: list[dict], path: Path, baseline: dict | None = None)
     ax.set_ylabel(r"mean eq. 5 cost [N$^2$ m$^2$ s]")
     ax.set_title("optimality vs human-likeness per generation")
     ax.grid(alpha=0.3)
-    return _save(fig, path)
+    # the limits of every point, with room for labels at the edges, fixed before they are placed
+    ax.margins(0.1)
+    ax.set_xlim(ax.get_xlim())
+    ax.set_ylim(ax.get_ylim())
+    fig.canvas.draw()
+    fig.set_layout_engine("none")  # freeze the layout the labels are placed in
+    label_points(ax, gen, dev, cost)
+    return fig
+
+
+def plot_tradeoff(metrics: list[dict], path: Path, baseline: dict | None = None) -> Path:
+    """Per generation: mean eq. 5 cost against mean ``human_deviation_deg``, in order.
+
+    ``baseline`` (``summary.json``): its ``human_only_cost_mean`` is drawn at deviation 0, the
+    human-only interpolation of the same conditions (the starting point of the trade-off).
+    Generation labels never overlap (`label_points`).
+    """
+    return _save(tradeoff_figure(metrics, baseline), path)
 
 
 def snapshot_figure(frames, row_labels, times, path: Path, title: str, renderer: str) -> Path:
@@ -558,6 +637,18 @@ def _online_catch(data: RunData, ctx: Context):
     return to_numpy(res)
 
 
+def throw(target, duration: float, gravity, reaction_time: float):
+    """The ball of ``catch.gif``: released `THROW_OFFSET` from ``target (3,)`` [m], passing it
+    when a motion of ``duration`` [s] started after ``reaction_time`` [s] would end, plus
+    `THROW_SLACK`. Returns the release point ``(3,)`` [m], velocity ``(3,)`` [m/s] and that
+    passing time [s]."""
+    target = np.asarray(target, float)
+    t_pass = reaction_time + duration + THROW_SLACK
+    p0 = target + THROW_OFFSET
+    v0 = (target - p0 - 0.5 * np.asarray(gravity, float) * t_pass**2) / t_pass
+    return p0, v0, t_pass
+
+
 def catch_animation(data: RunData, ctx: Context, frames: int, notes: list[str]):
     """A ball thrown through the condition's catch point, caught on the last database.
 
@@ -575,9 +666,7 @@ def catch_animation(data: RunData, ctx: Context, frames: int, notes: list[str]):
 
     settings = CatchSettings()
     gravity = np.asarray(ctx.robot.mj_model.opt.gravity, float)
-    t_pass = settings.reaction_time + ctx.duration + THROW_SLACK
-    p0 = ctx.target + THROW_OFFSET
-    v0 = (ctx.target - p0 - 0.5 * gravity * t_pass**2) / t_pass
+    p0, v0, t_pass = throw(ctx.target, ctx.duration, gravity, settings.reaction_time)
     catcher = make_catcher(ctx.robot, ctx.dyn, ctx.grid, data.config.basis, None, settings)
     rest = np.asarray(ctx.robot.rest, np.float32)[None]
     f32 = np.float32
@@ -601,6 +690,18 @@ def catch_animation(data: RunData, ctx: Context, frames: int, notes: list[str]):
     times = np.linspace(0.0, t_end, frames)
     q_f, ball_f = rnd.catch_frames(ctx.robot, t_motion, q, ball_t, ball, t_catch, times)
     return q_f, ball_f, frames / t_end
+
+
+def catch_camera(robot, q, balls):
+    """The camera of ``catch.gif``: the arm's motion ``q (F, J)`` and every ball position
+    ``balls (F, 3)`` [m] in the picture (the ball never leaves the view), ball's radius included."""
+    from evojax_motion import render as rnd
+
+    balls = np.asarray(balls, float)
+    # the ball's extent: its centre +- the radius along each axis
+    offsets = rnd.BALL_RADIUS * np.concatenate([np.eye(3), -np.eye(3)])
+    points = (balls[:, None, :] + offsets[None]).reshape(-1, 3)
+    return rnd.fit_camera(robot, [q], rnd.VIEWS["catch"], points)
 
 
 def make_report(
@@ -807,9 +908,7 @@ def _condition_figures(
                 layout.append((name, f"{label}\n{view.name}"))
     if catch is not None:
         q_gif, balls, _ = catch
-        low = balls[:, 2] <= ctx.target[2] + GIF_ABOVE  # the ball falls into the picture
-        cam = rnd.fit_camera(robot, [q_gif], rnd.VIEWS["catch"], balls[low])
-        batches.append(_Batch(q_gif, [cam], balls))
+        batches.append(_Batch(q_gif, [catch_camera(robot, q_gif, balls)], balls))
         layout.append(("catch.gif", ""))
     say(f"rendering {sum(len(b.q) for b in batches)} frames ...")
     try:

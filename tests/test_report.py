@@ -312,3 +312,122 @@ def test_save_gif_roundtrip(tmp_path):
     with Image.open(path) as im:
         assert im.n_frames == 5 and im.size == (48, 32)
         assert im.info["duration"] == 100
+
+
+# ---------------------------------------------------------------- what the figures show
+
+
+def _metrics(cost, deviation):
+    """metrics.jsonl rows for generations 1.. with these mean costs and deviations."""
+    return [
+        {
+            "generation": g,
+            "db_cost_mean": c,
+            "offspring_cost_mean": c + 0.5,
+            "torque_sum_mean": 0.8 * c,
+            "human_deviation_deg": d,
+        }
+        for g, (c, d) in enumerate(zip(cost, deviation), 1)
+    ]
+
+
+BASELINE = {"human_only_cost_mean": 14.0, "human_only_torque_sum_mean": 11.5}
+
+
+@pytest.mark.parametrize("baseline", [None, BASELINE])
+def test_fig5_legend_names_every_curve(baseline):
+    import matplotlib.pyplot as plt
+
+    from evojax_motion.plots import costs_figure
+
+    fig = costs_figure(_metrics([13.7, 13.45, 13.36, 13.36], [10, 11, 11, 11]), baseline)
+    try:
+        names = {t.get_text() for legend in fig.legends for t in legend.get_texts()}
+        lines = [line for ax in fig.axes for line in ax.get_lines()]
+        assert len(lines) == 3 + 2 * (baseline is not None)
+        for line in lines:  # an unlabelled line's label is "_child<n>"
+            assert line.get_label() in names, (line.get_label(), names)
+    finally:
+        plt.close(fig)
+
+
+def test_joint_angle_legend_names_every_curve():
+    import matplotlib.pyplot as plt
+
+    from evojax_motion.plots import joint_angles_figure
+
+    rng = np.random.default_rng(0)
+    q = [rng.normal(size=(T, 3)) for _ in range(3)]
+    fig = joint_angles_figure(q[0], q[1], 0.7, ["a", "b", "c"], q_human=q[2])
+    try:
+        names = {t.get_text() for t in fig.axes[0].get_legend().get_texts()}
+        for ax in fig.axes:
+            for line in ax.get_lines():
+                assert line.get_label() in names, (line.get_label(), names)
+    finally:
+        plt.close(fig)
+
+
+def _tradeoff_labels(metrics):
+    """Texts and their window extents of the trade-off plot's generation labels."""
+    import matplotlib.pyplot as plt
+
+    fig = report.tradeoff_figure(metrics, BASELINE)
+    try:
+        renderer = fig.canvas.get_renderer()
+        ax = fig.axes[0]
+        frame = ax.get_window_extent(renderer)
+        boxes = [t.get_window_extent(renderer) for t in ax.texts]
+        for box in boxes:  # inside the axes: clear of the colour bar and the tick labels
+            assert frame.contains(box.x0, box.y0) and frame.contains(box.x1, box.y1)
+        return [t.get_text() for t in ax.texts], boxes
+    finally:
+        plt.close(fig)
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        # the tiny run's: generations 3 and 4 at the same point (their labels overlapped)
+        ([13.7, 13.45, 13.36, 13.36], [10.1, 11.33, 11.04, 11.04]),
+        # 40 generations crowding together, one without a deviation
+        (
+            list(13 - 0.5 * np.log(np.arange(1, 41))),
+            [10 + 0.3 * np.log(g) if g != 7 else np.nan for g in range(1, 41)],
+        ),
+    ],
+    ids=["same-point", "crowded"],
+)
+def test_tradeoff_generation_labels_do_not_overlap(case):
+    cost, deviation = case
+    texts, boxes = _tradeoff_labels(_metrics(cost, deviation))
+    for i in range(len(boxes)):
+        for k in range(i + 1, len(boxes)):
+            assert not boxes[i].overlaps(boxes[k]), (texts[i], texts[k])
+    last = len(cost)
+    assert texts[0].endswith(str(last)) and "1" in texts  # the last and the first are labelled
+    if last == 4:
+        assert texts == ["3-4", "1", "2"]  # same spot: one label
+
+
+def test_catch_animation_keeps_the_ball_in_view(reach):
+    """The catch.gif camera frames every ball position of a report's throw (release, arc above
+    the head, catch) with the ball's radius; framing only the arm would not."""
+    robot, q, _ = reach
+    width, height = 320, 240  # report.py's frame size (fit_camera's 4:3)
+    target = rnd.site_positions(robot, q[-1:])[0]
+    gravity = np.asarray(robot.mj_model.opt.gravity, float)
+    p0, v0, t_pass = report.throw(target, 0.65, gravity, 0.1)
+    t = np.linspace(0.0, t_pass, 40)[:, None]
+    balls = p0 + v0 * t + 0.5 * gravity * t**2
+    assert balls[:, 2].max() > target[2] + 0.5  # the arc rises well above the catch point
+    np.testing.assert_allclose(balls[-1], target, atol=1e-9)
+    fovy = robot.mj_model.vis.global_.fovy
+
+    def inside(cam):
+        u, v, depth, focal = rnd.project(balls, cam, fovy, width, height)
+        r = focal * rnd.BALL_RADIUS / depth  # the ball's radius [px]
+        return (depth > 0) & (u - r >= 0) & (u + r <= width) & (v - r >= 0) & (v + r <= height)
+
+    assert inside(report.catch_camera(robot, q, balls)).all()
+    assert not inside(rnd.fit_camera(robot, [q], rnd.VIEWS["catch"], target[None])).all()
