@@ -85,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_report_parser(sub)
     __import__("evojax_motion.robot_cli", fromlist=["_"]).add_robot_parser(sub)
+    __import__("evojax_motion.simulate_cli", fromlist=["_"]).add_simulate_parser(sub)
     return parser
 
 
