@@ -162,16 +162,66 @@ def atomic_savez(path: Path, arrays: dict) -> Path:
     return path
 
 
-def load_database(path: str | os.PathLike) -> tuple[Database, DatabaseMeta]:
-    """Read and validate a database file. Raises ``UserError`` naming the file and the problem."""
-    path = Path(path)
+def _read_npz(path: Path, keys: tuple[str, ...] | None = None) -> dict:
+    """The arrays ``keys`` (default: all) of the ``.npz`` ``path``, read without pickles. Raises
+    ``UserError`` naming the file when it is missing, unreadable or lacks one of ``keys``."""
     if not path.is_file():
         raise UserError(f"{path}: database file not found")
     try:
         with np.load(path, allow_pickle=False) as f:
-            data = {k: f[k] for k in f.files}
+            missing = [k for k in keys or () if k not in f.files]
+            if missing:
+                raise UserError(
+                    f"{path}: missing keys {missing}; expected an evojax-motion database"
+                )
+            return {k: f[k] for k in (f.files if keys is None else keys)}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
         raise UserError(f"{path}: not a readable .npz database ({e})") from None
+
+
+def _meta_from(data: dict) -> DatabaseMeta:
+    return DatabaseMeta(
+        robot_name=str(data["robot_name"]),
+        mjcf=str(data["robot_mjcf"]),
+        joint_names=tuple(str(x) for x in np.atleast_1d(data["joint_names"])),
+        site_name=str(data["site_name"]),
+        synthetic=bool(data["synthetic"]),
+        description=str(data["description"]),
+    )
+
+
+def read_database_meta(path: str | os.PathLike) -> DatabaseMeta:
+    """The `DatabaseMeta` of a database file, without reading its arrays (which robot it is of).
+    Raises ``UserError`` naming the file when it is not a readable database."""
+    return _meta_from(_read_npz(Path(path), _META_KEYS))
+
+
+def database_shape(path: str | os.PathLike) -> tuple[int, ...]:
+    """The shape ``(N, T, J)`` of a database file's ``q``, read from its header alone (no array
+    is loaded). Raises ``UserError`` naming the file when it is not a readable database."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: database file not found")
+    try:
+        with zipfile.ZipFile(path) as z, z.open("q.npy") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                shape, _, _ = np.lib.format.read_array_header_1_0(f)
+            else:
+                shape, _, _ = np.lib.format.read_array_header_2_0(f)
+    except KeyError:
+        raise UserError(f"{path}: missing keys ['q']; expected an evojax-motion database") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise UserError(f"{path}: not a readable .npz database ({e})") from None
+    if len(shape) != 3:
+        raise UserError(f"{path}: q must have shape (N, T, J), got {shape}")
+    return tuple(int(x) for x in shape)
+
+
+def load_database(path: str | os.PathLike) -> tuple[Database, DatabaseMeta]:
+    """Read and validate a database file. Raises ``UserError`` naming the file and the problem."""
+    path = Path(path)
+    data = _read_npz(path)
     missing = [k for k in (*_ARRAY_KEYS, *_META_KEYS) if k not in data]
     if missing:
         raise UserError(f"{path}: missing keys {missing}; expected an evojax-motion database")
@@ -184,14 +234,7 @@ def load_database(path: str | os.PathLike) -> tuple[Database, DatabaseMeta]:
         valid=data["valid"].astype(bool),
         generation=data["generation"].astype(np.int32),
     )
-    meta = DatabaseMeta(
-        robot_name=str(data["robot_name"]),
-        mjcf=str(data["robot_mjcf"]),
-        joint_names=tuple(str(x) for x in data["joint_names"]),
-        site_name=str(data["site_name"]),
-        synthetic=bool(data["synthetic"]),
-        description=str(data["description"]),
-    )
+    meta = _meta_from(data)
     validate_database(db, meta, str(path))
     return db, meta
 

@@ -141,10 +141,12 @@ def _session(path: str, mtime_ns: int, backend: str):
 
 def _open(args):
     from evojax_motion.online import resolve_database_path
+    from evojax_motion.workflow import check_database_of_run
 
     path = resolve_database_path(args.db)
     if not path.is_file():
         raise UserError(f"{path}: database file not found")
+    check_database_of_run(path)
     return _session(str(path.resolve()), path.stat().st_mtime_ns, args.dynamics)
 
 

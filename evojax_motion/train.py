@@ -412,13 +412,14 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
 
     from evojax_motion.compile_cache import signature
     from evojax_motion.config import config_to_dict, config_to_yaml
-    from evojax_motion.workflow import make_robot_dynamics, synthesises
+    from evojax_motion.workflow import check_run_memory, make_robot_dynamics, synthesises
 
     t_start = time.perf_counter()
     evo, tr = cfg.evolution, cfg.train
     check_settings(cfg)
     resume = check_run_dir(out, config_to_dict(cfg), resume)
     robot, dyn = make_robot_dynamics(cfg)
+    check_run_memory(cfg, robot)  # sizes that cannot fit: refused before any work
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
     # A new run compiles its step and setup programs in background threads: from now on, or,
     # where the demonstrations are synthesised, once their synthesis is traced. (Nothing for a

@@ -23,6 +23,8 @@ from evojax_motion.database import (
 )
 from evojax_motion.dynamics import Dynamics, make_dynamics
 from evojax_motion.errors import UserError
+from evojax_motion.memory import check_demos_memory
+from evojax_motion.memory import check_run_memory as check_run_memory  # train's hook
 from evojax_motion.robot import Robot, robot_from_config
 
 
@@ -43,6 +45,51 @@ def check_database_matches_robot(meta: DatabaseMeta, robot: Robot, where: str) -
             f"{where}: database joints {list(meta.joint_names)} do not match robot "
             f"{robot.name!r} joints {list(robot.joint_names)}"
         )
+
+
+def _model_outline(mjcf: str) -> tuple[str, tuple[str, ...]] | None:
+    """``(model name, joint names)`` of MJCF text; None where it is not XML."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(mjcf)
+    except ET.ParseError:
+        return None
+    joints = tuple(j.get("name", "") for j in root.iter("joint"))
+    return root.get("model", ""), joints
+
+
+def check_database_of_run(path: str | Path) -> None:
+    """Refuse a database file inside a run folder (``robot.xml`` beside it, `train`) that was
+    recorded for another robot than that folder's: its stored joint names must be joints of
+    ``robot.xml``, and both models must have the same name and joints. Reads the database's meta
+    only (`database.read_database_meta`); nothing where there is no ``robot.xml``. Raises
+    `UserError` naming the database, its robot and joints, and ``robot.xml``."""
+    from evojax_motion.database import read_database_meta
+    from evojax_motion.train import ROBOT_FILE
+
+    path = Path(path)
+    robot_xml = path.parent / ROBOT_FILE
+    if not robot_xml.is_file():
+        return
+    try:
+        run_text = robot_xml.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"{robot_xml}: unreadable robot model ({type(e).__name__})") from None
+    meta = read_database_meta(path)
+    if run_text.strip() == meta.mjcf.strip():
+        return
+    ours, theirs = _model_outline(meta.mjcf), _model_outline(run_text)
+    if theirs is None:
+        raise UserError(f"{robot_xml}: not an MJCF model (XML); expected the run's robot")
+    name, run_joints = theirs
+    if ours is not None and ours == theirs and set(meta.joint_names) <= set(run_joints):
+        return  # the same model, written differently
+    raise UserError(
+        f"{path}: a database of robot {meta.robot_name!r} (joints {list(meta.joint_names)}), "
+        f"but {robot_xml} beside it is robot {name!r} (joints {list(run_joints)}); expected "
+        "the run's own database"
+    )
 
 
 def cache_parts(cfg: Config, robot: Robot) -> dict:
@@ -66,6 +113,8 @@ def build_demonstrations(cfg: Config) -> tuple[Database, DatabaseMeta, dict]:
     from evojax_motion.demos import summarize_demonstrations
 
     robot, dyn = make_robot_dynamics(cfg)
+    if cfg.demos_file is None:
+        check_demos_memory(cfg, robot)  # sizes that cannot fit: refused before any work
     db, meta = demonstrations(cfg, robot, dyn)
     return db, meta, summarize_demonstrations(db, robot)
 

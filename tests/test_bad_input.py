@@ -86,6 +86,15 @@ def inputs(tmp_path_factory):
     (run / "metrics.jsonl").write_text("")
     (d / "no_run").mkdir()
     (d / "no_run" / "notes.txt").write_text("not a run\n")
+    mixed = d / "arm6_run"  # a mahru_arm run folder whose final database is of arm6
+    mixed.mkdir()
+    (mixed / "config.yaml").write_text(TINY.read_text())
+    (mixed / "robot.xml").write_text(mahru.mjcf)
+    shutil.copy(d / "arm6.npz", mixed / "db_final.npz")
+    (d / "dup.yaml").write_text("seed: 0\nevolution:\n  conditions: 6\n\nevolution: {}\n")
+    (d / "dup_inner.yaml").write_text("seed: 0\nevolution:\n  conditions: 6\n  conditions: 7\n")
+    (d / "empty.yaml").write_text("")
+    (d / "comments.yaml").write_text("# nothing but a comment\n\n")
     return d
 
 
@@ -137,9 +146,10 @@ def _fill(text: str, d: Path, s: Path) -> str:
     return text.replace("{D}", str(d)).replace("{S}", str(s))
 
 
-def check_refused(argv: list[str], names: list[str], inputs: Path, workdir: Path) -> None:
+def check_refused(argv: list[str], names: list[str], inputs: Path, workdir: Path) -> str:
     """Run ``evojax-motion argv`` in a fresh folder ``S``: exit 2, one ``error:`` line naming one
-    of ``names``, no traceback, no file created or changed in ``S`` or in the inputs."""
+    of ``names``, no traceback, no file created or changed in ``S`` or in the inputs. Returns
+    that line."""
     s = Path(tempfile.mkdtemp(dir=workdir))
     argv = [_fill(a, inputs, s) for a in argv]
     names = [_fill(n, inputs, s) for n in names]
@@ -162,6 +172,7 @@ def check_refused(argv: list[str], names: list[str], inputs: Path, workdir: Path
     assert list(s.iterdir()) == [], f"wrote {list(s.rglob('*'))}: {where}"
     assert _snapshot(inputs) == before_inputs, where
     s.rmdir()
+    return lines[0]
 
 
 # --------------------------------------------------------------------------------- configs
@@ -581,6 +592,208 @@ def test_negative_non_finite_values_are_named_by_their_option(inputs, workdir, v
 
 def test_fuzz_covers_at_least_200_cases():
     assert N_CONFIG + N_CLI >= 200
+
+
+# ------------------------------------------------ sizes checked first, nothing accepted silently
+
+_TRAIN = ["train", str(TINY), "--out", "{S}/run", "--quiet"]
+_DEMOS = ["demos", "--config", str(TINY), "--out", "{S}/demos.npz"]
+_GENERATE = ["generate", "--target", *_good_target, "--out", "{S}/traj.csv", "--db"]
+_CATCH = ["catch", "--ball", *_good_ball, "--out", "{S}/catch.csv", "--db"]
+_TRIALS = [str(ADL / "ADL004" / f"ADL004AR{i}.csv") for i in range(1, 6)]
+_MIXED = "arm6_run/db_final.npz: a database of robot 'arm6'"
+_ROBOT_XML = "arm6_run/robot.xml beside it is robot 'mahru_arm'"
+_TOO_BIG = "memory"
+
+# case: (argv, texts the error line must hold, texts it must not hold)
+REFUSALS: dict[str, tuple[list[str], list[str], list[str]]] = {
+    # sizes that cannot fit: the estimate, the memory there is and the setting to lower
+    "train T=100000": (
+        [*_TRAIN, "--set", "demos.samples=100000"], [_TOO_BIG, "lower demos.samples"], []
+    ),
+    "train 1e8 demos": (
+        [*_TRAIN, "--set", "demos.count=100000000"], [_TOO_BIG, "lower demos.count"], []
+    ),
+    "train 1e9 conditions": (
+        [*_TRAIN, "--set", "evolution.conditions=1000000000"],
+        ["evolution.conditions", _TOO_BIG, "lower evolution.conditions"], [],
+    ),
+    "demos T=100000": (
+        [*_DEMOS, "--set", "demos.samples=100000"], [_TOO_BIG, "lower demos.samples"], []
+    ),
+    "demos 1e8 demos": (
+        [*_DEMOS, "--set", "demos.count=100000000"], [_TOO_BIG, "lower demos.count"], []
+    ),
+    "import capacity below trials": (
+        ["import", "--format", "vicon-csv", "--out", "{S}/x.npz", "--capacity", "2", *_TRIALS],
+        ["--capacity: expected >= the 5 trials found, got 2"], [],
+    ),
+    # --set errors name the --set argument, not the config file
+    "set not an int": (
+        [*_TRAIN, "--set", "demos.count=abc"],
+        ["--set demos.count=abc: demos.count: expected an integer"], [str(TINY)],
+    ),
+    "set float for an int": (
+        [*_DEMOS, "--set", "demos.count=1e8"],
+        ["--set demos.count=1e8: demos.count: expected an integer", "write 100000000"], [str(TINY)],
+    ),
+    "set nested unknown key": (
+        [*_TRAIN, "--set", "demos.region.nope=1"],
+        ["--set demos.region.nope=1: demos.region.nope: unknown key", "known keys: frame"], [],
+    ),
+    "set duplicate key": (
+        [*_TRAIN, "--set", "demos={count: 5, count: 6}"],
+        ["--set demos={count: 5, count: 6}: duplicate key 'demos.count'"], [],
+    ),
+    "set combination": (
+        [*_TRAIN, "--set", "compiler.n_components=2"],
+        ["--set compiler.n_components=2: compiler.max_free_per_joint"], [str(TINY)],
+    ),
+    "duration beyond a minute": (
+        [*_TRAIN, "--set", "evolution.duration=1e9"], ["evolution.duration: expected null or"], []
+    ),
+    "nan velocity limit": (
+        [*_TRAIN, "--set", "robot.velocity_limits={elbow: .nan}"],
+        ["robot.velocity_limits.elbow: expected a finite number"], [],
+    ),
+    # config files
+    "duplicate key": (
+        ["train", "{D}/dup.yaml", "--out", "{S}/run"],
+        ["{D}/dup.yaml: duplicate key 'evolution' at lines 2 and 5"], [],
+    ),
+    "duplicate nested key": (
+        ["demos", "--config", "{D}/dup_inner.yaml", "--out", "{S}/d.npz"],
+        ["{D}/dup_inner.yaml: duplicate key 'evolution.conditions' at lines 3 and 4"], [],
+    ),
+    "empty file": (["train", "{D}/empty.yaml", "--out", "{S}/run"], ["{D}/empty.yaml: empty"], []),
+    "comments only": (
+        ["demos", "--config", "{D}/comments.yaml", "--out", "{S}/d.npz"],
+        ["{D}/comments.yaml: empty config file"], [],
+    ),
+    # a run folder whose final database is of another robot than its robot.xml
+    "generate mixed run": ([*_GENERATE, "{D}/arm6_run"], [_MIXED, _ROBOT_XML], []),
+    "generate mixed npz": ([*_GENERATE, "{D}/arm6_run/db_final.npz"], [_MIXED, _ROBOT_XML], []),
+    "catch mixed run": ([*_CATCH, "{D}/arm6_run"], [_MIXED, _ROBOT_XML], []),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(REFUSALS))
+def test_refused_in_one_line(inputs, workdir, case):
+    """Exit 2, one ``error:`` line that names the field or file (every text of the case), no
+    traceback, nothing written (`check_refused`)."""
+    argv, must, must_not = REFUSALS[case]
+    must = [_fill(t, inputs, workdir) for t in must]
+    line = check_refused(argv, must, inputs, workdir)
+    for text in must:
+        assert text in line, line
+    for text in must_not:
+        assert text not in line, line
+
+
+def test_capacity_is_checked_before_the_ik(monkeypatch, inputs, workdir):
+    """``--capacity`` below the trials found is refused before any trial is read or solved."""
+    from evojax_motion.mocap import importer
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the trials were prepared before --capacity was checked")
+
+    monkeypatch.setattr(importer, "_prepare_markers", fail)
+    argv = REFUSALS["import capacity below trials"][0]
+    check_refused(argv, ["--capacity"], inputs, workdir)
+
+
+_REFUSE_SCRIPT = """
+import json, resource, sys, time
+from evojax_motion.cli import main
+from evojax_motion.robot import load_robot
+import jax
+jax.devices()
+load_robot("mahru_arm")  # the robot a refused run loads anyway
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+t0 = time.perf_counter()
+status = main(sys.argv[1:])
+seconds = time.perf_counter() - t0
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"status": status, "seconds": seconds, "grew_kib": after - before}))
+"""
+REFUSE_SECONDS = 15.0  # loading the robot and its dynamics: ~1 s on 2 busy CPU cores
+REFUSE_GROWTH_KIB = 100 * 1024  # peak resident memory the refusal may add
+
+
+@pytest.mark.parametrize(
+    "setting", ["demos.samples=100000", "demos.count=100000000", "evolution.conditions=1000000000"]
+)
+def test_absurd_sizes_are_refused_at_once_without_allocating(tmp_path, setting):
+    """In a fresh process (its peak resident memory is its own): refused in seconds, and the
+    process's peak grew by less than `REFUSE_GROWTH_KIB` (the arrays were never made)."""
+    import json
+    import subprocess
+    import sys
+
+    argv = ["train", str(TINY), "--out", str(tmp_path / "run"), "--quiet", "--set", setting]
+    env = {**os.environ, "EVOJAX_MOTION_JAX_CACHE": "off", "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run(
+        [sys.executable, "-c", _REFUSE_SCRIPT, *argv], capture_output=True, text=True, env=env,
+        timeout=600, cwd=REPO,
+    )  # fmt: skip
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["status"] == 2, done.stderr
+    assert result["seconds"] < REFUSE_SECONDS, result
+    assert result["grew_kib"] < REFUSE_GROWTH_KIB, result
+    assert setting.split("=")[0] in done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+_PEAK_SCRIPT = """
+import json, resource, sys
+from evojax_motion.cli import main
+status = main(sys.argv[1:])
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"status": status, "peak_kib": peak}))
+"""
+ESTIMATE_WITHIN = 2.0  # the estimate is this close to the measured peak (either way)
+
+
+@pytest.mark.slow
+def test_memory_estimate_is_near_the_measured_peak_of_a_tiny_run(tmp_path):
+    """`memory.estimate_run` of ``configs/tiny.yaml`` (one generation) against the peak resident
+    memory of that run in a fresh process (compilation cache off, as `BASE_BYTES` assumes)."""
+    import json
+    import subprocess
+    import sys
+
+    from evojax_motion.memory import estimate_run
+    from evojax_motion.robot import load_robot
+
+    overrides = ["evolution.generations=1"]
+    argv = ["train", str(TINY), "--out", str(tmp_path / "run"), "--quiet"]
+    argv += [a for o in overrides for a in ("--set", o)]
+    env = {**os.environ, "EVOJAX_MOTION_JAX_CACHE": "off", "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run(
+        [sys.executable, "-c", _PEAK_SCRIPT, *argv], capture_output=True, text=True, env=env,
+        timeout=1800, cwd=REPO,
+    )  # fmt: skip
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["status"] == 0, done.stderr[-2000:]
+    measured = result["peak_kib"] * 1024
+    cfg = load_config(TINY, overrides)
+    estimate = estimate_run(cfg, load_robot(cfg.robot.name)).total()
+    assert 1 / ESTIMATE_WITHIN <= estimate / measured <= ESTIMATE_WITHIN, (estimate, measured)
+
+
+def test_sizes_of_a_demos_file_are_read_from_its_header(inputs):
+    """The estimate of a run with ``demos_file`` takes n and T from the file's header."""
+    from evojax_motion.database import database_shape, load_database
+    from evojax_motion.memory import run_sizes
+    from evojax_motion.robot import load_robot
+
+    path = inputs / "good.npz"
+    shape = load_database(path)[0].q.shape
+    assert database_shape(path) == shape
+    cfg = load_config(TINY, [f"demos_file={path}"])
+    sizes = run_sizes(cfg, load_robot("mahru_arm"))
+    assert (sizes.n, sizes.t, sizes.j) == shape
+    assert sizes.trials == 0
 
 
 def test_shared_inputs_survive(inputs, workdir):

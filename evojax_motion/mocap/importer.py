@@ -111,6 +111,10 @@ class ImportParams:
         need(self.angle_unit in ("deg", "rad"), "--angle-unit: expected deg or rad")
         need(self.chunk >= 1 and self.ik_iters >= 1, "--chunk and --ik-iters: expected >= 1")
         need(self.unit_scale is None or self.unit_scale > 0, "--unit-scale: expected > 0")
+        need(
+            self.capacity is None or self.capacity >= 1,
+            f"--capacity: expected an integer >= 1, got {self.capacity}",
+        )
         if self.out is not None:
             need(str(self.out).endswith(".npz"), f"--out {self.out}: expected a path ending .npz")
 
@@ -355,6 +359,10 @@ def import_trials(params: ImportParams) -> ImportResult:
         load_robot(params.robot, joints=params.joints, site=params.site)
     )
     files = find_trials(params)
+    if params.capacity is not None and params.capacity < len(files):  # before the IK's work
+        raise UserError(
+            f"--capacity: expected >= the {len(files)} trials found, got {params.capacity}"
+        )
     margin = np.deg2rad(params.limit_margin_deg)
     lower = np.asarray(robot.lower) + margin
     upper = np.asarray(robot.upper) - margin
