@@ -45,6 +45,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_motion.errors import UserError
+from evojax_motion.linalg import jacobi
+from evojax_motion.linalg.jacobi import (
+    gram_svd,  # noqa: F401  # re-exported until the package layout move
+    gram_two_pass,
+    jacobi_backend,
+    jacobi_eigh,  # noqa: F401  # re-exported until the package layout move
+    jacobi_svd,  # noqa: F401  # re-exported until the package layout move
+)
 
 # A component whose singular value is below this fraction of the largest one spans only rounding
 # noise (e.g. a joint that no neighbour moves); it is set to zero rather than to a random direction.
@@ -298,203 +306,22 @@ def select_neighbours_among(
     return nb, exact
 
 
-# Symmetric eigenproblems up to this size are solved by `jacobi_eigh` (elementwise code, batched
-# by vmap and fused by XLA); larger ones by `jnp.linalg.eigh` (a solver call per matrix on GPUs).
-JACOBI_MAX_N = 12
-# Parallel Jacobi sweeps from the identity (quadratic convergence; float32 random symmetric matrices
-# reach rounding level after 3 sweeps at n <= 5 and 5 at n = 10): up to n = 6, and above.
-JACOBI_SWEEPS_SMALL = 4
-JACOBI_SWEEPS = 6
-# One-sided Jacobi (`jacobi_svd`) up to n = 6: one sweep more. On the paper's BC solves (100
-# conditions x 7 joints, T = 100, K = 4; compared with a float64 solve)
-# 4 sweeps left start trajectories up to 8.4e-3 rad off the float64 ones, 5 as close as LAPACK
-# (1.5e-4 rad): the BC rows in q-orthonormal coordinates are graded over four orders (the slope
-# rows near `BC_LEAK`), and after 4 sweeps their left singular vectors were orthonormal only to
-# 2.1e-6 (`tests/test_basis.py`, ``PAPER_BC_ROWS``).
-JACOBI_SVD_SWEEPS_SMALL = 5
-
-
-def _dot(a, b):
-    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
-
-
-def _round_robin(n: int) -> list[np.ndarray]:
-    """Static schedule of parallel Jacobi rounds for an even ``n``: every round rotates the pairs
-    of adjacent positions ``(2i, 2i + 1)``, then the matrix is permuted by the round's index
-    array so that the next round's pairs are adjacent. Circle method (one index fixed, the others
-    rotating): the ``n - 1`` rounds of a sweep meet every pair once and end in the start order."""
-    half = n // 2
-    slot = [2 * i if i < half else 2 * (n - 1 - i) + 1 for i in range(n)]  # list index -> position
-
-    def order(players):
-        out = [0] * n
-        for i, p in enumerate(players):
-            out[slot[i]] = p
-        return out
-
-    players = list(range(n))
-    perms = []
-    for _ in range(n - 1):
-        nxt = [players[0], players[-1], *players[1:-1]]
-        now, new = order(players), order(nxt)
-        perms.append(np.asarray([now.index(p) for p in new]))
-        players = nxt
-    return perms
-
-
-def _pair_rotation(app, aqq, apq):
-    """Cosines and sines ``(c, s)`` of the Jacobi rotations that zero ``apq`` in the symmetric 2x2
-    blocks ``[[app, apq], [apq, aqq]]`` (Numerical Recipes' stable angle; no rotation where
-    ``apq == 0``). All arguments ``(h,)``."""
-    one = jnp.ones((), app.dtype)
-    nz = apq != 0
-    theta = (aqq - app) / jnp.where(nz, 2.0 * apq, one)
-    t = jnp.where(theta >= 0, one, -one) / (jnp.abs(theta) + jnp.hypot(theta, one))
-    t = jnp.where(nz, t, 0.0)
-    c = jax.lax.rsqrt(t * t + 1.0)
-    return c, t * c
-
-
-def _rotate_pairs(x, c, s):
-    """Columns ``(2i, 2i + 1)`` of ``x (r, m)`` rotated by ``(c_i, s_i)``: ``x J``."""
-    r, m = x.shape
-    x = x.reshape(r, m // 2, 2)
-    x0, x1 = x[..., 0], x[..., 1]
-    return jnp.stack([c * x0 - s * x1, s * x0 + c * x1], axis=-1).reshape(r, m)
-
-
-def _default_sweeps(n: int) -> int:
-    return JACOBI_SWEEPS_SMALL if n <= 6 else JACOBI_SWEEPS
-
-
-def jacobi_eigh(a: jnp.ndarray, sweeps: int | None = None):
-    """Eigenvalues ``w (n,)`` (unsorted) and eigenvectors ``v (n, n)`` (columns) of a small
-    symmetric ``a (n, n)``, ``a = v diag(w) v^T``, by ``sweeps`` sweeps of parallel cyclic Jacobi
-    (default `JACOBI_SWEEPS_SMALL` up to n = 6, else `JACOBI_SWEEPS`).
-
-    Each round rotates ``n / 2`` disjoint pairs at once (`_pair_rotation`) with
-    elementwise arithmetic on the whole matrix, then permutes it (`_round_robin`): a short program
-    (fast to compile) with no solver call per matrix, so under vmap a batch runs as a few fused
-    elementwise kernels per round (batched cuSOLVER/LAPACK calls for small matrices cost far more
-    than their arithmetic on GPUs). An odd ``n`` is padded with a decoupled zero row. Sizes above
-    `JACOBI_MAX_N` use ``jnp.linalg.eigh``.
-    """
-    n = a.shape[-1]
-    if n > JACOBI_MAX_N:
-        return jnp.linalg.eigh(a)
-    m = n + n % 2
-    a = jnp.pad(a, ((0, m - n), (0, m - n)))
-    perms = _round_robin(m)
-
-    def sweep(_, carry):
-        x, v = carry
-        for perm in perms:
-            d = jnp.diagonal(x)
-            c, s = _pair_rotation(d[0::2], d[1::2], jnp.diagonal(x, offset=1)[0::2])
-            x = _rotate_pairs(_rotate_pairs(x, c, s).T, c, s)  # J^T x J (x symmetric)
-            v = _rotate_pairs(v, c, s)
-            x, v = x[perm][:, perm], v[:, perm]
-        return x, v
-
-    sweeps = _default_sweeps(n) if sweeps is None else sweeps
-    x, v = jax.lax.fori_loop(0, sweeps, sweep, (a, jnp.eye(m, dtype=a.dtype)))
-    return jnp.diagonal(x)[:n], v[:n, :n]
-
-
-def jacobi_svd(a: jnp.ndarray, sweeps: int | None = None):
-    """``(u (m, k), s (k,), vt (n, n))`` of a small ``a (m, n)``, ``k = min(m, n)``, singular
-    values descending, like ``jnp.linalg.svd(a, full_matrices=True)`` for ``vt`` (columns of
-    ``u`` are zero where ``s == 0``), by one-sided (Hestenes) Jacobi.
-
-    The columns of ``a`` are rotated pairwise until they are orthogonal, ``a V = U diag(s)``: each
-    round takes the pairs' norms and dot product from the current columns and rotates them like
-    `jacobi_eigh` rotates a symmetric matrix. No Gram matrix is formed, so small singular values
-    keep the accuracy of a backward-stable SVD (relative to ``s[0]``, not ``sqrt(eps)``), and
-    there is no solver call: under vmap a batch is a few elementwise kernels per round, for
-    accelerators (`small_svd`). ``n`` up to `JACOBI_MAX_N`; an odd ``n`` gets a zero column.
-    """
-    m, n = a.shape
-    if n > JACOBI_MAX_N:
-        raise ValueError(f"jacobi_svd: expected at most {JACOBI_MAX_N} columns, got {n}")
-    n2 = n + n % 2
-    x = jnp.pad(a, ((0, 0), (0, n2 - n)))
-    perms = _round_robin(n2)
-
-    def sweep(_, carry):
-        x, v = carry
-        for perm in perms:
-            pairs = x.reshape(m, n2 // 2, 2)
-            p, q = pairs[..., 0], pairs[..., 1]
-            c, s = _pair_rotation(
-                jnp.sum(p * p, axis=0), jnp.sum(q * q, axis=0), jnp.sum(p * q, axis=0)
-            )
-            x, v = _rotate_pairs(x, c, s)[:, perm], _rotate_pairs(v, c, s)[:, perm]
-        return x, v
-
-    if sweeps is None:
-        sweeps = JACOBI_SVD_SWEEPS_SMALL if n <= 6 else JACOBI_SWEEPS
-    x, v = jax.lax.fori_loop(0, sweeps, sweep, (x, jnp.eye(n2, dtype=a.dtype)))
-    norms = jnp.sqrt(jnp.sum(x * x, axis=0))
-    sv, order = jax.lax.top_k(norms, n2)
-    k = min(m, n)
-    u = x[:, order[:k]] / jnp.where(sv[:k] > 0, sv[:k], 1.0)[None, :]
-    # The padding column stays zero and sorts last among equals; drop its row and column of V.
-    vt = v[:n, order[:n]].T
-    return jnp.where(sv[None, :k] > 0, u, 0.0), sv[:k], vt
-
-
 def small_svd(a: jnp.ndarray, full_matrices: bool = True):
-    """``jnp.linalg.svd`` of a small ``a (m, n)`` on CPU (LAPACK), `jacobi_svd` on accelerators
-    (`jacobi_backend`); ``full_matrices=False`` trims ``vt`` to ``(min(m, n), n)``."""
-    if jacobi_backend() and a.shape[-1] <= JACOBI_MAX_N:
-        u, s, vt = jacobi_svd(a)
-        return u, s, vt if full_matrices else vt[: s.shape[0]]
-    return jnp.linalg.svd(a, full_matrices=full_matrices)
+    """`linalg.jacobi.small_svd` of ``a (m, n)`` with this backend's kernel (`jacobi_backend`,
+    looked up here at trace time: LAPACK on CPU, one-sided Jacobi on accelerators)."""
+    return jacobi.small_svd(a, full_matrices, jacobi=jacobi_backend())
 
 
 def small_eigh(a: jnp.ndarray):
-    """``jnp.linalg.eigh`` (ascending eigenvalues ``(..., n)``, eigenvectors ``(..., n, n)``) of a
-    batch of small symmetric ``a (..., n, n)``: LAPACK/cuSOLVER, or `jacobi_eigh` on
-    accelerators (`jacobi_backend`) up to ``n = JACOBI_MAX_N``."""
-    n = a.shape[-1]
-    if not (jacobi_backend() and n <= JACOBI_MAX_N):
-        return jnp.linalg.eigh(a)
-    batch = a.shape[:-2]
-    w, v = jax.vmap(jacobi_eigh)(a.reshape(-1, n, n))
-    order = jnp.argsort(w, axis=-1)
-    w = jnp.take_along_axis(w, order, axis=-1)
-    v = jnp.take_along_axis(v, order[:, None, :], axis=-1)
-    return w.reshape(*batch, n), v.reshape(*batch, n, n)
+    """`linalg.jacobi.small_eigh` of symmetric ``a (..., n, n)`` with this backend's kernel
+    (`jacobi_backend`, looked up here at trace time): ``(e (..., n) ascending, v (..., n, n))``."""
+    return jacobi.small_eigh(a, jacobi=jacobi_backend())
 
 
-def jacobi_backend() -> bool:
-    """Whether small decompositions use `jacobi_eigh` (accelerators) or LAPACK (CPU).
-
-    On GPUs a batch of small SVD/eigen problems is a cuSOLVER call per matrix or a batched Jacobi
-    call, both far slower than the arithmetic (an online query has ~70 such problems per target);
-    on CPU, LAPACK is fast and `jacobi_eigh`'s long elementwise program compiles slowly (the same
-    split as ``dynamics_rnea.default_form``). Read at trace time.
-    """
-    return jax.default_backend() != "cpu"
-
-
-def gram_svd(a: jnp.ndarray):
-    """``(u (m, k), s (k,), vt (n, n))`` of a small ``a (m, n)``, ``k = min(m, n)``, singular
-    values descending, from the eigen-decomposition of ``a^T a`` (`jacobi_eigh`).
-
-    Like ``jnp.linalg.svd(a, full_matrices=True)`` for ``vt``, but singular values below
-    ~``sqrt(eps) * s[0]`` are rounding noise (the Gram squares the conditioning): for rank
-    decisions at coarser tolerances and pseudo-inverses followed by a refinement step. Columns of
-    ``u`` are zero where ``s == 0``.
-    """
-    m, n = a.shape
-    lam, v = jacobi_eigh(_dot(a.T, a))
-    order = jnp.argsort(-lam)
-    lam, v = lam[order], v[:, order]
-    k = min(m, n)
-    s = jnp.sqrt(jnp.maximum(lam[:k], 0.0))
-    u = _dot(a, v[:, :k]) / jnp.where(s > 0, s, 1.0)[None, :]
-    return jnp.where(s[None, :] > 0, u, 0.0), s, v.T
+def small_right_svd(a: jnp.ndarray, two_pass_gram: bool = False):
+    """`linalg.jacobi.small_right_svd` of ``a (m, n)`` with this backend's kernel
+    (`jacobi_backend`, looked up here at trace time): ``(s (n,), vt (n, n))``."""
+    return jacobi.small_right_svd(a, two_pass_gram, jacobi=jacobi_backend())
 
 
 def _pca_rows_svd(centred: jnp.ndarray, n_components: int):
@@ -507,50 +334,15 @@ def _pca_rows_svd(centred: jnp.ndarray, n_components: int):
     return sv[:avail], u[:, :avail].T
 
 
-def _gram_two_pass(x: jnp.ndarray, eigh):
-    """``(left (r, r), z (r, c))`` for ``x (r, c)``: its left singular vectors (columns) and the
-    rows ``s_i v_i`` (singular value times right singular vector), both unordered, from two
-    passes of its ``r x r`` row Gram: ``x x^T = U diag(s^2) U^T`` rotates the rows, ``y = U^T
-    x``; the Gram of ``y`` (nearly diagonal) rotates them again, ``z = W^T y``, and ``left = U
-    W``. The second Gram is formed from the rotated rows, so its entries err by rounding relative
-    to ``s_i s_j`` rather than to ``s_0^2``: as accurate as a (backward stable) SVD of x, with no
-    ``sqrt(eps)`` floor on the small singular values. ``eigh``: a symmetric eigensolver
-    returning ``(values, vectors)`` (`jnp.linalg.eigh` or `jacobi_eigh`)."""
-    _, u = eigh(_dot(x, x.T))
-    y = _dot(u.T, x)
-    _, w = eigh(_dot(y, y.T))
-    return _dot(u, w), _dot(w.T, y)
-
-
-def small_right_svd(a: jnp.ndarray, two_pass_gram: bool = False):
-    """``(s (n,), vt (n, n))`` of a small ``a (m, n)`` with ``m >= n``: singular values
-    (descending) and right singular vectors (rows), as ``jnp.linalg.svd(a,
-    full_matrices=False)[1:]``.
-
-    `small_svd`'s (LAPACK on CPU, one-sided Jacobi on accelerators), or with ``two_pass_gram``
-    on accelerators (`jacobi_backend`, ``n <= JACOBI_MAX_N``) the two Gram passes of
-    `_gram_two_pass` on the columns' ``n x n`` Gram with `jacobi_eigh`: as accurate, with no
-    reduction over the m rows per Jacobi round, but more rounds. For the optimiser's BC solve
-    (100 x 5 matrices per condition and joint, `compile_interp.GRAM_SVD_MIN_MATRICES`).
-    """
-    m, n = a.shape
-    if not (two_pass_gram and jacobi_backend() and m >= n and n <= JACOBI_MAX_N):
-        _, s, vt = small_svd(a, full_matrices=False)
-        return s, vt
-    left, z = _gram_two_pass(a.T, jacobi_eigh)
-    s, order = jax.lax.top_k(jnp.sqrt(jnp.sum(z * z, axis=1)), n)
-    return s, left[:, order].T
-
-
 def _pca_rows_gram(centred: jnp.ndarray, n_components: int):
     """As `_pca_rows_svd`, through the ``k x k`` Gram matrix (k ~ 10 rows) in two passes
-    (`_gram_two_pass`: as accurate as a backward stable SVD of X).
+    (`linalg.jacobi.gram_two_pass`: as accurate as a backward stable SVD of X).
 
     For accelerators: under vmap each pass is one batched symmetric eigensolver call (cuSOLVER's
     batched Jacobi on GPUs). For 700,000 Gram matrices of 10 x 100 trajectories (100,000 online
     targets) on an H100 this takes 48 ms, the same two passes with `jacobi_eigh` 137 ms
     (``benchmarks/small_eigh.py``, ``benchmarks/results/small_eigh_gpu.json``)."""
-    _, z = _gram_two_pass(centred, jnp.linalg.eigh)  # (k, T) rows s_i v_i, unordered
+    _, z = gram_two_pass(centred, jnp.linalg.eigh)  # (k, T) rows s_i v_i, unordered
     sv, order = jax.lax.top_k(jnp.sqrt(jnp.sum(z * z, axis=1)), min(z.shape[0], n_components))
     return sv, z[order] / jnp.where(sv > 0, sv, 1.0)[:, None]
 

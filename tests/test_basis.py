@@ -10,11 +10,9 @@ from scipy.linalg import subspace_angles
 from scipy.spatial.transform import Rotation
 
 import evojax_motion.basis as basis_module
+import evojax_motion.linalg.jacobi as linalg_jacobi
 from evojax_motion.basis import (
     BasisSettings,
-    gram_svd,
-    jacobi_eigh,
-    jacobi_svd,
     neighbour_candidates,
     pca_basis,
     rotation_distance,
@@ -32,29 +30,6 @@ TOL_ANGLE = 1e-3  # rad: largest principal angle between our and numpy's compone
 TOL_PCA = 1e-5  # rad: masked mean vs numpy (float32 sums of ~10 values of ~1 rad)
 TOL_VAR_REL = 1e-4  # relative: component variances vs numpy's singular values
 TOL_DIST = 1e-6  # m: distances vs numpy
-TOL_EIG = 2e-6  # relative to the largest |eigenvalue|: float32 Jacobi vs numpy (float64)
-TOL_ORTHO = 3e-6  # Jacobi eigenvectors' deviation from orthonormality (float32)
-TOL_GRAM_SVD = 1e-4  # relative: Gram-based singular values (squared conditioning) vs numpy
-# One-sided Jacobi: every singular value (the smallest of a 1e-4 graded spectrum too) relative to
-# itself vs numpy; a Gram-based SVD misses those by O(1) (eps * cond^2).
-TOL_JACOBI_SVD_REL = 1e-3
-TOL_JACOBI_SVD = 2e-6  # relative to s[0]: singular values and the rebuilt matrix (float32)
-# Left singular vectors' deviation from orthonormality on `PAPER_BC_ROWS` (float32): 1.0e-7 with
-# the default sweeps; 2.1e-6 with one sweep fewer (they build the BC solve's binding rows).
-TOL_U_ORTHO = 5e-7
-# The BC rows (q, q at the end, end slopes) of one joint of a paper problem in q-orthonormal
-# coordinates (`compile_interp._joint_system`, leak rule; built on an H100): graded over
-# four orders with slope rows near `BC_LEAK`; one-sided Jacobi needed 5 sweeps here.
-PAPER_BC_ROWS = np.array(
-    [
-        [9.9150902e-01, 8.6972788e-05, 3.9750159e-07, -1.4079719e-04, -2.4273682e00],
-        [1.0006860e00, -1.3771796e00, -1.4659084e00, 9.1515005e-01, 1.9347692e-01],
-        [-3.0556896e-06, 8.4528880e-04, -8.8380672e-05, 6.2640343e-04, -8.7294471e-04],
-        [-3.2271785e-06, 1.9684207e-04, 1.8224504e-04, 1.3259037e-03, -9.2237513e-04],
-    ],
-    np.float32,
-)
-
 N, T, J, K, C = 40, 20, 3, 4, 6
 
 
@@ -219,122 +194,25 @@ def test_orientation_term():
     assert np.asarray(nb.index)[0].tolist() == [0, 1, 2, 3]  # default: position only
 
 
-@pytest.mark.parametrize("n", [3, 4, 5, 10])
-def test_jacobi_eigh_matches_numpy(n):
-    rng = np.random.default_rng(n)
-    x = rng.standard_normal((20, n, 30)) * np.logspace(0, -3, n)[:, None]  # spread spectrum
-    a = np.einsum("bit,bjt->bij", x, x).astype(np.float32)
-    w, v = jax.jit(jax.vmap(jacobi_eigh))(jnp.asarray(a))
-    w, v = np.asarray(w, np.float64), np.asarray(v, np.float64)
-    ref = np.linalg.eigvalsh(a.astype(np.float64))
-    scale = np.abs(ref).max(axis=1, keepdims=True)
-    np.testing.assert_allclose(np.sort(w, axis=1) / scale, ref / scale, atol=TOL_EIG)
-    assert np.abs(np.einsum("bki,bkj->bij", v, v) - np.eye(n)).max() < TOL_ORTHO
-    rebuilt = np.einsum("bik,bk,bjk->bij", v, w, v)
-    assert (np.abs(rebuilt - a).max(axis=(1, 2)) / scale[:, 0]).max() < TOL_EIG * n
-
-
-def test_gram_svd_matches_numpy():
-    rng = np.random.default_rng(3)
-    a = rng.standard_normal((30, 4, 5)).astype(np.float32)
-    u, s, vt = jax.jit(jax.vmap(gram_svd))(jnp.asarray(a))
-    _, s_ref, vt_ref = np.linalg.svd(a.astype(np.float64), full_matrices=True)
-    np.testing.assert_allclose(np.asarray(s), s_ref, rtol=TOL_GRAM_SVD)
-    vt = np.asarray(vt, np.float64)
-    for i in range(4):  # each right singular vector up to its sign; the 5th spans the null space
-        np.testing.assert_allclose(np.abs(np.sum(vt[:, i] * vt_ref[:, i], axis=1)), 1.0, atol=1e-4)
-    np.testing.assert_allclose(np.abs(np.sum(vt[:, 4] * vt_ref[:, 4], axis=1)), 1.0, atol=1e-4)
-    rebuilt = np.einsum("bik,bk,bkj->bij", np.asarray(u), np.asarray(s), vt[:, :4])
-    np.testing.assert_allclose(rebuilt, a, atol=1e-5)
-
-
-@pytest.mark.parametrize("shape", [(4, 5), (100, 5), (30, 3), (6, 6), (3, 7), (50, 1)])
-def test_jacobi_svd_matches_numpy(shape):
-    """One-sided Jacobi vs numpy (float64) on random, rank-deficient and graded matrices."""
-    m, n = shape
-    k = min(m, n)
-    rng = np.random.default_rng(m * n)
-    a = rng.standard_normal((30, m, n))
-    a[:10, :, -1] = a[:10, :, 0]  # a repeated column: rank-deficient
-    # graded: singular values 1 .. 1e-4 (random orthogonal factors)
-    uu = np.linalg.qr(rng.standard_normal((10, m, m)))[0][..., :k]
-    vv = np.linalg.qr(rng.standard_normal((10, n, n)))[0][..., :k]
-    a[10:20] = np.einsum("bik,k,bjk->bij", uu, np.logspace(0, -4, k), vv)
-    a = a.astype(np.float32)
-    u, s, vt = (np.asarray(x, np.float64) for x in jax.jit(jax.vmap(jacobi_svd))(jnp.asarray(a)))
-    s_ref = np.linalg.svd(a.astype(np.float64), compute_uv=False)
-    assert u.shape == (30, m, k) and s.shape == (30, k) and vt.shape == (30, n, n)
-    np.testing.assert_allclose(s / s_ref[:, :1], s_ref / s_ref[:, :1], atol=TOL_JACOBI_SVD)
-    graded = s_ref[10:20] > 0
-    rel = np.abs(s[10:20] - s_ref[10:20])[graded] / s_ref[10:20][graded]
-    assert rel.max() < TOL_JACOBI_SVD_REL
-    assert np.abs(np.einsum("bki,bkj->bij", vt, vt) - np.eye(n)).max() < TOL_ORTHO * n
-    rebuilt = np.einsum("bik,bk,bkj->bij", u, s, vt[:, :k])
-    err = np.abs(rebuilt - a).max(axis=(1, 2)) / s_ref[:, 0]
-    assert err.max() < TOL_JACOBI_SVD * n
-
-
-@pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "gram"])
-@pytest.mark.parametrize("shape", [(100, 5), (30, 3), (6, 6), (50, 1)])
-def test_small_right_svd_matches_numpy(shape, jacobi, monkeypatch):
-    """`small_right_svd` on both paths (the two-pass Gram one of accelerators, and LAPACK) on
-    random, rank-deficient and graded (1 .. 1e-4) matrices: every singular value relative to
-    itself within `TOL_JACOBI_SVD_REL` (what the one-sided Jacobi SVD meets, which this path
-    replaces in the BC solve), right singular vectors orthonormal, ``a V = U S`` with orthogonal
-    ``U``, each vector of a distinct singular value numpy's up to its sign."""
-    monkeypatch.setattr(basis_module, "jacobi_backend", lambda: jacobi)
-    m, n = shape
-    rng = np.random.default_rng(m + n)
-    a = rng.standard_normal((30, m, n))
-    if n > 1:
-        a[:10, :, -1] = a[:10, :, 0]  # a repeated column: rank-deficient
-    uu = np.linalg.qr(rng.standard_normal((10, m, m)))[0][..., :n]
-    vv = np.linalg.qr(rng.standard_normal((10, n, n)))[0]
-    a[10:20] = np.einsum("bik,k,bjk->bij", uu, np.logspace(0, -4, n), vv)  # graded
-    a = a.astype(np.float32)
-    svd = jax.vmap(lambda x: small_right_svd(x, two_pass_gram=True))
-    s, vt = (np.asarray(x, np.float64) for x in jax.jit(svd)(a))
-    _, s_ref, vt_ref = np.linalg.svd(a.astype(np.float64), full_matrices=False)
-    assert s.shape == (30, n) and vt.shape == (30, n, n)
-    np.testing.assert_allclose(s / s_ref[:, :1], s_ref / s_ref[:, :1], atol=TOL_JACOBI_SVD)
-    rel = np.abs(s[10:20] - s_ref[10:20]) / s_ref[10:20]
-    assert rel.max() < TOL_JACOBI_SVD_REL
-    assert np.abs(np.einsum("bki,bkj->bij", vt, vt) - np.eye(n)).max() < TOL_ORTHO * n
-    av = np.einsum("bij,bkj->bik", a.astype(np.float64), vt)  # columns s_i u_i
-    np.testing.assert_allclose(np.linalg.norm(av, axis=1) / s_ref[:, :1], s / s_ref[:, :1],
-                               atol=TOL_JACOBI_SVD)  # fmt: skip
-    graded = np.abs(np.sum(vt[10:20] * vt_ref[10:20], axis=2))  # distinct values: vector by vector
-    np.testing.assert_allclose(graded, 1.0, atol=TOL_JACOBI_SVD_REL)
-
-
-def test_jacobi_svd_converges_on_a_paper_bc_matrix():
-    u, s, vt = (np.asarray(x, np.float64) for x in jax.jit(jacobi_svd)(PAPER_BC_ROWS))
-    a = PAPER_BC_ROWS.astype(np.float64)
-    s_ref = np.linalg.svd(a, compute_uv=False)
-    np.testing.assert_allclose(s / s_ref[0], s_ref / s_ref[0], atol=TOL_JACOBI_SVD)
-    assert np.abs(u.T @ u - np.eye(4)).max() < TOL_U_ORTHO
-    assert np.abs((u * s) @ vt[:4] - a).max() / s_ref[0] < TOL_JACOBI_SVD
-
-
 @pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "jacobi"])
-def test_small_svd_and_eigh_agree_with_numpy(jacobi, monkeypatch):
-    """The dispatchers give numpy's conventions on both paths: descending singular values,
-    ``full_matrices`` shapes, ascending eigenvalues with matching eigenvectors."""
+def test_small_decompositions_follow_the_backend_switch(jacobi, monkeypatch):
+    """`small_svd`, `small_eigh` and `small_right_svd` take this module's `jacobi_backend` at
+    trace time (the switch the compilers' accelerator-path tests patch): each gives exactly what
+    its `linalg.jacobi` kernel gives with that choice (the kernels: `tests/test_linalg.py`)."""
     monkeypatch.setattr(basis_module, "jacobi_backend", lambda: jacobi)
-    rng = np.random.default_rng(7)
-    a = rng.standard_normal((8, 4, 5)).astype(np.float32)
-    for full in (True, False):
-        u, s, vt = jax.vmap(lambda x, f=full: small_svd(x, f))(jnp.asarray(a))
-        assert vt.shape == ((8, 5, 5) if full else (8, 4, 5))
-        np.testing.assert_allclose(s, np.linalg.svd(a, compute_uv=False), rtol=1e-5)
-        rebuilt = np.einsum("bik,bk,bkj->bij", u, s, np.asarray(vt)[:, :4])
-        np.testing.assert_allclose(rebuilt, a, atol=1e-5)
-    x = rng.standard_normal((3, 2, 7, 9)).astype(np.float32)
-    sym = np.einsum("...it,...jt->...ij", x, x) - 2.0 * np.eye(7, dtype=np.float32)
-    w, v = small_eigh(jnp.asarray(sym))
-    np.testing.assert_allclose(w, np.linalg.eigvalsh(sym.astype(np.float64)), atol=2e-5 * 20)
-    rebuilt = np.einsum("...ik,...k,...jk->...ij", v, w, v)
-    np.testing.assert_allclose(rebuilt, sym, atol=1e-4)
+    rng = np.random.default_rng(8)
+    a = jnp.asarray(rng.standard_normal((6, 5)), jnp.float32)
+    sym = a.T @ a
+    pairs = [
+        (small_svd(a, False), linalg_jacobi.small_svd(a, False, jacobi=jacobi)),
+        (small_eigh(sym), linalg_jacobi.small_eigh(sym, jacobi=jacobi)),
+        (small_right_svd(a, True), linalg_jacobi.small_right_svd(a, True, jacobi=jacobi)),
+    ]
+    for got, want in pairs:
+        for x, y in zip(got, want, strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    other = linalg_jacobi.small_eigh(sym, jacobi=not jacobi)[1]
+    assert not np.array_equal(np.asarray(small_eigh(sym)[1]), np.asarray(other))
 
 
 @pytest.mark.parametrize("jacobi", [False, True], ids=["lapack", "jacobi"])
