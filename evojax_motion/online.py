@@ -49,7 +49,8 @@ limit_headroom``, the authority left to a feedback controller): a log-spaced sca
 `MAX_DURATION`, then bisection between the last infeasible and the first feasible duration
 (feasibility is monotone in D without damping; the scan guards the rest). A motion is usable
 (``ok``) only when that D fits the time allowed (`MAX_DURATION`; for a catch, until the ball
-arrives) and its torques, recomputed by inverse dynamics at that D, are within the limits.
+arrives) and its velocities and torques at that D (the polynomial: the inverse dynamics there,
+up to rounding) are within the full limits.
 Otherwise the result says which limit binds: joint, value needed, at what time (``worst_*``);
 e.g. gravity alone over a torque limit fails at any D.
 """
@@ -432,8 +433,13 @@ def time_law(dyn: Dynamics, grid: TimeGrid, q) -> TimeLaw:
     slope, curve = derivatives(grid, q, jnp.ones(q.shape[0], q.dtype))
     inv = jax.vmap(jax.vmap(dyn.inverse))
     zero = jnp.zeros_like(q)
-    c0 = inv(q, zero, zero)
-    ahead, back = inv(q, slope, curve), inv(q, -slope, curve)
+    # one batch of 3C paths: the inverse dynamics is traced (and compiled) once, not thrice
+    tau = inv(
+        jnp.concatenate([q, q, q]),
+        jnp.concatenate([zero, slope, -slope]),
+        jnp.concatenate([zero, curve, curve]),
+    ).reshape((3, *q.shape))
+    c0, ahead, back = tau[0], tau[1], tau[2]
     return TimeLaw(c0, 0.5 * (ahead - back), 0.5 * (ahead + back) - c0, slope)
 
 
@@ -553,14 +559,11 @@ def finish_motion(
     )
     inv = jax.vmap(jax.vmap(dyn.inverse))
 
-    def at(dur):
-        qd, qdd = derivatives(grid, q, dur)
-        return qd, qdd, inv(q, qd, qdd)
-
     def usage(qd, tau):  # (C, T, J): share of the usable limit, torque and velocity
         return jnp.abs(tau) / tau_use, jnp.abs(qd) / vel_use
 
-    qd, qdd, tau = at(asked)
+    qd, qdd = derivatives(grid, q, asked)
+    tau = inv(q, qd, qdd)
     over = jnp.max(jnp.maximum(*usage(qd, tau)), axis=(1, 2)) > 1.0  # NaN: not over
 
     def stretch(_):
@@ -569,7 +572,9 @@ def finish_motion(
         needed = shortest_duration(law, asked, vel_use, tau_use, scan, iters)
         needed = jnp.where(over, needed, asked)
         dur = jnp.minimum(needed, jnp.maximum(top, asked))
-        return (needed, dur, *at(dur))
+        qd, qdd = derivatives(grid, q, dur)
+        w = (1.0 / dur)[:, None, None]  # the law is the inverse dynamics at dur, exactly
+        return needed, dur, qd, qdd, law.c0 + w * (law.c1 + w * law.c2)
 
     # Most motions are within their limits: skip the work (a branch: C is a batch axis here).
     needed, dur, qd, qdd, tau = jax.lax.cond(
