@@ -1,12 +1,17 @@
 """The ``evojax-motion`` command line: one subcommand per stage of the pipeline.
 
 User mistakes (``UserError``, bad arguments) print one line ``error: ...`` on stderr and exit 2;
-nothing is written in that case.
+nothing is written in that case. So do the file system's refusals (``OSError``: read-only file
+system, no space left, permission denied, a file where a folder should be): one line ``error:
+PATH: REASON``. A command checks that its output folder can be written before it starts its
+work (`atomic.check_writable`; `train` takes its run folder's lock, `run_lock`); every file is
+written atomically (`atomic`), so a refusal later on leaves no partial file either.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -89,6 +94,35 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Commands whose --out is a folder; every other --out is a file. A run folder is checked by
+# `train` itself, as it takes the folder's lock (`run_lock`).
+_FOLDER_OUTPUT, _OWN_CHECK = {"report", "simulate"}, {"train"}
+
+
+def output_folder(args: argparse.Namespace) -> Path | None:
+    """The folder a command's output goes into (made if missing), or None: no output, or
+    checked by the command itself."""
+    out = getattr(args, "out", None)
+    if args.command in _OWN_CHECK:
+        return None
+    if args.command == "report" and out is None:
+        from evojax_motion.report import REPORT_DIR
+
+        return Path(args.run_dir) / REPORT_DIR
+    if out is None:
+        return None
+    return Path(out) if args.command in _FOLDER_OUTPUT else Path(out).parent
+
+
+def os_error_line(e: OSError) -> str:
+    """``PATH: REASON`` of a file-system error (``REASON`` where it names no path)."""
+    reason = e.strerror or str(e) or type(e).__name__
+    name = e.filename
+    if isinstance(name, (str, bytes, os.PathLike)):
+        return f"{os.fsdecode(name)}: {reason}"
+    return reason
+
+
 # Non-finite negative numbers: argparse takes "-inf" for an option (its negative-number test
 # knows digits only) and refused "--start 0 ... -inf" as an unknown argument instead of letting
 # the option's own check name it. A leading space keeps them values; float() ignores it.
@@ -104,6 +138,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         argv = _keep_values(sys.argv[1:] if argv is None else list(argv))
         args = build_parser().parse_args(argv)
+        folder = output_folder(args)
+        if folder is not None:
+            from evojax_motion.atomic import check_writable
+
+            check_writable(folder)  # before minutes of work, not after
         import jax
 
         # float32 matmuls on GPUs default to TF32; finite differences and the BC solves need full
@@ -112,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
             return int(args.func(args) or 0)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except OSError as e:  # the file system's refusal is the user's to fix, not a crash
+        print(f"error: {os_error_line(e)}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

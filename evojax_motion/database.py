@@ -22,7 +22,6 @@ stay static under jit. Saved as ``.npz`` (``allow_pickle=False``) with these key
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -146,20 +145,11 @@ def save_database(path: str | os.PathLike, db: Database, meta: DatabaseMeta) -> 
 
 
 def atomic_savez(path: Path, arrays: dict) -> Path:
-    """``np.savez`` to a temporary file in the same folder, then ``os.replace`` onto ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a database is an ordinary shared file
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """``np.savez`` to a temporary file in the same folder, then ``os.replace`` onto ``path``
+    (`atomic.atomic_write`: a failed write names ``path`` and leaves no temporary file)."""
+    from evojax_motion.atomic import atomic_write
+
+    return atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
 def _read_npz(path: Path, keys: tuple[str, ...] | None = None) -> dict:

@@ -18,7 +18,9 @@ the jitted `evolution.make_generation_step`. The run folder holds:
 
 The generation step has no randomness (the condition set is drawn once, from ``seed``), so a
 resumed run recomputes exactly what an uninterrupted one would: the final database is the same bit
-for bit. Every file is written atomically (temporary file + ``os.replace``).
+for bit. Every file is written atomically (temporary file + ``os.replace``), so a run stopped by
+a full disk, like a killed one, resumes. While a run is going, ``.lock`` names its process and a
+second run of the folder is refused (`run_lock`).
 """
 
 from __future__ import annotations
@@ -166,19 +168,26 @@ def _with_new_keys(theirs: dict, resolved: dict, mine: dict) -> dict:
     return out
 
 
+def _refuse_a_file(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: expected a run directory, found a file")
+
+
 def check_run_dir(out: Path, cfg_dict: dict, resume: bool) -> bool:
     """Refuse a folder that is not this run's; True when ``out`` already holds this run.
 
     Raises ``UserError`` (nothing written) when: ``out`` is a file; without ``resume``, ``out`` is
-    not empty; with ``resume``, ``out`` holds no run; ``out`` holds another config's run.
+    not empty (its lock file aside); with ``resume``, ``out`` holds no run; ``out`` holds another
+    config's run.
     """
     import yaml
 
     from evojax_motion.config import config_from_dict, config_to_dict
+    from evojax_motion.run_lock import LOCK_FILE
 
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: expected a run directory, found a file")
+    _refuse_a_file(out)
     leftovers = {p.name for p in _temporaries(out)}  # never read; removed when the run starts
+    leftovers.add(LOCK_FILE)  # this run's, or one a killed run left
     names = (p.name for p in out.iterdir()) if out.is_dir() else ()
     entries = sorted(n for n in names if n not in leftovers)
     cfg_path = out / CONFIG_FILE
@@ -362,7 +371,6 @@ def _restore(out: Path, manager, cfg: Config, robot):
     Damaged steps newer than the one restored are deleted (new saves would collide with them).
     """
     from evojax_motion import checkpoint as ck
-    from evojax_motion.conditions import conditions_template
     from evojax_motion.database import load_database
     from evojax_motion.workflow import check_database_matches_robot
 
@@ -370,10 +378,7 @@ def _restore(out: Path, manager, cfg: Config, robot):
         return None, []
     db_init, meta = load_database(out / DB_INITIAL)
     check_database_matches_robot(meta, robot, str(out / DB_INITIAL))
-    _, t, j = db_init.q.shape
-    template = _state_tree(db_init, None, 0)
-    template["conditions"] = conditions_template(cfg.evolution.conditions, t, j)
-    restored, problems = ck.restore_latest(manager, template)
+    restored, problems = ck.restore_latest(manager, checkpoint_template(cfg, db_init))
     for p in problems:
         _log(f"warning: {p}")
     if restored is None:
@@ -384,6 +389,18 @@ def _restore(out: Path, manager, cfg: Config, robot):
         if restored is None or step > restored.step:
             manager.delete(step)
     return restored, problems
+
+
+def checkpoint_template(cfg: Config, db_initial) -> dict:
+    """A state shaped and typed as a checkpoint of a run of ``cfg`` holds it (``db_initial``,
+    the run's ``db_initial.npz``, and zero conditions): ``checkpoint.restore_latest``'s
+    template."""
+    from evojax_motion.conditions import conditions_template
+
+    _, t, j = db_initial.q.shape
+    template = _state_tree(db_initial, None, 0)
+    template["conditions"] = conditions_template(cfg.evolution.conditions, t, j)
+    return template
 
 
 def run_training(
@@ -397,14 +414,20 @@ def run_training(
     generation (wall time from one generation's result to the next: its execution, overlapped
     with the previous generation's files; compile and setup times separate), paths.
     Raises ``UserError`` before writing anything when ``out_dir`` is not usable (see
-    `check_run_dir`), the demonstrations cannot be read or the condition set cannot be drawn.
+    `check_run_dir`) or in use by another run (`run_lock`), the demonstrations cannot be read or
+    the condition set cannot be drawn; ``OSError`` naming the file or folder where the file
+    system refuses a write (the run then resumes once there is room: files are atomic).
     """
     import jax
 
+    from evojax_motion.run_lock import hold_run_folder
+
+    out = Path(out_dir)
+    _refuse_a_file(out)  # before the lock, which makes the folder
     # On GPUs float32 matrix products default to TF32 (10-bit mantissa); the time grid's
     # derivative operators would lose accelerations to it. Full precision, scoped to the run.
-    with jax.default_matmul_precision("highest"):
-        return _run_training(cfg, Path(out_dir), resume, progress)
+    with hold_run_folder(out), jax.default_matmul_precision("highest"):
+        return _run_training(cfg, out, resume, progress)
 
 
 def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:

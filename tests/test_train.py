@@ -1,15 +1,20 @@
 """The training run (train.py, checkpoint.py, plots.py) on the tiny config: metrics, invariants,
-costs against C MuJoCo, resume after SIGKILL, damaged checkpoints, refusals of bad input."""
+costs against C MuJoCo, resume after SIGKILL or a full disk, damaged checkpoints, one run per
+folder, refusals of bad input."""
 
 from __future__ import annotations
 
+import errno
 import glob
 import itertools
 import json
 import os
+import re
 import select
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -48,9 +53,6 @@ def manager(tmp_path):
         yield m
 
 
-# A failed orbax restore leaves a tensorstore callback aimed at a closed asyncio loop ("Exception
-# ignored ... Event loop is closed"): harmless noise of the failure path under test.
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_checkpoint_roundtrip_and_damaged_latest(tmp_path, manager):
     for step in range(4):
         ck.save_checkpoint(manager, step, _tree(step, step), {"metrics": [{"generation": step}]})
@@ -79,6 +81,39 @@ def test_checkpoint_roundtrip_and_damaged_latest(tmp_path, manager):
     bad["db"]["q"] = np.zeros((9, 7, 2), np.float32)
     restored, problems = ck.restore_latest(manager, bad)
     assert restored is None and len(problems) == 3
+
+
+def test_only_callbacks_on_a_closed_event_loop_are_silenced(monkeypatch):
+    """A failed orbax save or restore leaves tensorstore callbacks aimed at the event loop orbax
+    has closed: their ``RuntimeError: Event loop is closed`` (unraisable, printed as a traceback
+    each) is dropped once a manager is open; any other unraisable exception is not."""
+    import asyncio
+    import types
+
+    def unraisable(call):
+        try:
+            call()
+        except RuntimeError as e:
+            return types.SimpleNamespace(
+                exc_type=type(e), exc_value=e, exc_traceback=e.__traceback__, err_msg=None,
+                object=None,
+            )  # fmt: skip
+        raise AssertionError("no error")
+
+    loop = asyncio.new_event_loop()
+    loop.close()
+
+    def other():
+        raise RuntimeError("Event loop is closed")  # the same words, not from a closed loop
+
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", seen.append)
+    ck._ignore_closed_loop_callbacks()
+    ck._ignore_closed_loop_callbacks()  # once only
+    closed, elsewhere = unraisable(lambda: loop.call_soon_threadsafe(print)), unraisable(other)
+    sys.unraisablehook(closed)
+    sys.unraisablehook(elsewhere)
+    assert seen == [elsewhere]
 
 
 def test_checksum_detects_changed_data(manager):
@@ -570,9 +605,11 @@ def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(tiny_run, kil
 
 
 @pytest.mark.slow
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # see above
-def test_damaged_latest_checkpoint_falls_back(tiny_run, tmp_path, capsys):
+def test_damaged_latest_checkpoint_falls_back(tiny_run, tmp_path, capsys, monkeypatch):
+    """A resume skips a damaged step with one warning line, and without the tracebacks of
+    callbacks on orbax's closed event loop (`checkpoint._ignore_closed_loop_callbacks`)."""
     import shutil
+    import time
 
     from evojax_motion.config import load_config
     from evojax_motion.train import run_training
@@ -585,7 +622,11 @@ def test_damaged_latest_checkpoint_falls_back(tiny_run, tmp_path, capsys):
         Path(f).write_bytes(b"")
     (out / "db_final.npz").unlink()
 
+    unraisable: list = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
     summary = run_training(load_config(TINY), out, resume=True, progress=False)
+    time.sleep(0.5)  # callbacks of the failed restore come from tensorstore's threads
+    assert [str(u.exc_value) for u in unraisable] == []
     err = capsys.readouterr().err
     assert f"warning: checkpoint {g_total}: unreadable" in err
     assert summary["resumed_from"] == g_total - 1
@@ -657,6 +698,127 @@ def test_an_error_queueing_the_next_generation_comes_after_the_files_of_the_last
     monkeypatch.setattr(train, "compile_generation_step", real)
     summary = train.run_training(cfg, out, resume=True, progress=False)
     assert summary["resumed_from"] == 2
+    _assert_same_run(tiny_run[0], out)
+
+
+def _every_checkpoint_restores(out: Path, cfg) -> list[int]:
+    """The run's checkpoint steps, after checking that each restores as the run's state, with
+    its generation, and passes its checksum."""
+    from evojax_motion.database import load_database
+    from evojax_motion.train import CHECKPOINT_DIR, checkpoint_template
+
+    template = checkpoint_template(cfg, load_database(out / "db_initial.npz")[0])
+    with ck.open_manager(out / CHECKPOINT_DIR, cfg.train.max_to_keep) as manager:
+        steps = sorted(manager.all_steps())
+        for step in steps:
+            restored, problem = ck.restore_step(manager, step, template)
+            assert restored is not None, (out, step, problem)
+            assert int(restored.state["generation"]) == step
+    return steps
+
+
+def _lock_holder(out: Path) -> int | None:
+    from evojax_motion.run_lock import LOCK_FILE
+
+    try:
+        return int(json.loads((out / LOCK_FILE).read_text())["pid"])
+    except (OSError, ValueError, KeyError):  # not there, or not yet written
+        return None
+
+
+@pytest.mark.slow
+def test_a_second_train_of_a_run_folder_in_use_is_refused(tiny_run, tmp_path):
+    """Two `train` processes on one folder: while the first runs (stopped with SIGSTOP for the
+    time being, so that it is surely still running), a second one, and a `train --resume`,
+    exit with status 2 and one line naming the first's process; the first then finishes with
+    every checkpoint intact and the results of a run alone."""
+    from evojax_motion.run_lock import LOCK_FILE
+
+    ref_out, _, cfg = tiny_run
+    out = tmp_path / "run"
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+    cli = [sys.executable, "-m", "evojax_motion.cli", *KILL_ARGS, "--out", str(out)]
+    log = tmp_path / "first.log"
+    with log.open("w") as f:
+        first = subprocess.Popen(cli, env=env, stdout=f, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 600
+        while _lock_holder(out) != first.pid:
+            assert first.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+            time.sleep(0.05)
+        first.send_signal(signal.SIGSTOP)
+        try:
+            refusal = rf"error: {re.escape(str(out))}: in use by process {first.pid} "
+            refusal += r"\(started \d\d:\d\d:\d\d\)\n"
+            for extra in ([], ["--resume"]):
+                second = subprocess.run(
+                    [*cli, *extra], env=env, capture_output=True, text=True, timeout=600
+                )
+                assert second.returncode == 2, (extra, second.stderr[-3000:])
+                assert re.fullmatch(refusal, second.stderr), (extra, second.stderr[-3000:])
+        finally:
+            first.send_signal(signal.SIGCONT)
+        assert first.wait(timeout=600) == 0, log.read_text()[-3000:]
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    _assert_same_run(ref_out, out)
+    assert _every_checkpoint_restores(out, cfg) == _every_checkpoint_restores(ref_out, cfg)
+    assert not (out / LOCK_FILE).exists()
+
+
+# As tensorstore reports a full disk in orbax's save (from a real one)
+_TENSORSTORE_ENOSPC = (
+    'RESOURCE_EXHAUSTED: Error writing "db.q/0" in OCDBT database at local file "{}": Failed '
+    "to write 8050 bytes to file 14: No space left on device [os_error_code='28']"
+)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("where", ["checkpoint", "metrics"])
+def test_a_full_disk_stops_a_run_with_one_line_and_it_resumes(
+    tiny_run, tmp_path, monkeypatch, capsys, where
+):
+    """The disk fills up at generation 3, in its checkpoint (orbax's save raises tensorstore's
+    error) or in the metrics written after it (``fsync``, which names no file): `train` exits
+    with status 2 and one line naming the step's folder or the file; ``--resume`` then ends in
+    the uninterrupted run's results."""
+    import orbax.checkpoint as ocp
+
+    from evojax_motion.cli import main
+
+    out = tmp_path / "run"
+    args = [*KILL_ARGS, "--out", str(out)]
+    if where == "checkpoint":
+        real_save = ocp.CheckpointManager.save
+
+        def save(self, step, *a, **kw):
+            if step == 3:
+                raise ValueError(_TENSORSTORE_ENOSPC.format(self.directory))
+            return real_save(self, step, *a, **kw)
+
+        monkeypatch.setattr(ocp.CheckpointManager, "save", save)
+        named, resumed_from = out / "checkpoints" / "3", 2
+    else:
+        if not Path("/proc/self/fd").is_dir():
+            pytest.skip("needs /proc/self/fd to tell which file a descriptor is")
+        real_fsync, metrics_writes = os.fsync, []
+
+        def fsync(fd):
+            if os.path.basename(os.readlink(f"/proc/self/fd/{fd}")).startswith(".metrics.jsonl."):
+                metrics_writes.append(fd)
+                if len(metrics_writes) == 4:  # the empty file, then after generations 1, 2, 3
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return real_fsync(fd)
+
+        monkeypatch.setattr(os, "fsync", fsync)
+        named, resumed_from = out / "metrics.jsonl", 3
+    assert main(args) == 2
+    assert capsys.readouterr().err == f"error: {named}: {os.strerror(errno.ENOSPC)}\n"
+    monkeypatch.undo()
+    assert main([*args, "--resume"]) == 0
+    assert json.loads((out / "summary.json").read_text())["resumed_from"] == resumed_from
     _assert_same_run(tiny_run[0], out)
 
 

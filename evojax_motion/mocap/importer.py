@@ -25,7 +25,6 @@ import argparse
 import functools
 import json
 import math
-import os
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -768,17 +767,12 @@ def run_import(args) -> int:
     if result.db is None:
         reasons = "; ".join(f"{r.name}: {r.reason}" for r in result.reports[:5])
         raise UserError(f"import: no trial could be imported ({reasons})")
+    from evojax_motion.atomic import atomic_write_text
     from evojax_motion.database import save_database
 
     save_database(out, result.db, result.meta)
     if params.report:
-        _atomic_write_text(Path(params.report), json.dumps(report_dict(result, params), indent=1))
+        atomic_write_text(Path(params.report), json.dumps(report_dict(result, params), indent=1))
     print(f"written to {out}")
     return EXIT_SKIPPED if result.skipped else EXIT_OK
 
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp.write_text(text)
-    os.replace(tmp, path)
