@@ -30,12 +30,13 @@ Symbols: n demonstrations, T samples, J joints, B bodies of the robot's model, P
 Calibration (`FACTORS`, `BASE_BYTES`): peak resident memory (``/usr/bin/time``, the kernel's
 ``ru_maxrss``) of ``train CONFIG --set evolution.generations=1`` on a 2-core CPU with JAX's
 compilation cache off. ``configs/tiny.yaml``: 1.24 GiB as it is and 1.21 GiB at T = 400 (the
-compile dominates), 1.90 GiB at T = 2,000 (the time grid), 1.31 GiB at 4,000 demonstrations,
-1.66 GiB at 3,000 conditions; ``configs/catch_ball.yaml``: 0.98 GiB. On a GPU, the device peaks
-of ``configs/catch_ball.yaml`` in ``benchmarks/results/generations_per_sec_gpu_h100*.json``:
-0.14, 0.18, 2.24 and 10.7 GiB at 300, 1,000, 10,000 and 100,000 conditions. The estimate is
-within a factor of 2 of each (0.85-1.3 on the CPU, 0.9-1.7 on the GPU);
-``tests/test_bad_input.py`` checks a tiny run.
+compile dominates), 1.90 GiB at T = 2,000 (the time grid), 1.31 and 2.07 GiB at 4,000 and
+20,000 demonstrations (the synthesis, while the step compiles beside it), 1.66 and 2.28 GiB at
+3,000 and 12,000 conditions (the neighbour search); ``configs/catch_ball.yaml``: 0.98 GiB. On a
+GPU, the device peaks of ``configs/catch_ball.yaml`` in
+``benchmarks/results/generations_per_sec_gpu_h100*.json``: 0.14, 0.18, 2.24 and 10.7 GiB at 300,
+1,000, 10,000 and 100,000 conditions. The estimate is 0.85-1.3 times each CPU peak and 0.9-1.7
+times each GPU peak; ``tests/test_bad_input.py`` checks a tiny run.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ FACTORS = {
     "database": 24.0,
     "database on device": 8.0,
     "condition set": 8.0,
-    "synthesis": 40.0,
+    "synthesis": 100.0,
     "costs": 40.0,
     "condition draw": 12.0,
     "neighbour search": 8.0,
