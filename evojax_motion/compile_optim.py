@@ -29,14 +29,16 @@ Optimisers (``OptimSettings.method``), batched over conditions (and starts):
     penalty's exact Hessian (`penalty_model`) plus a damped-BFGS model of the torque cost,
     started from its Gauss-Newton matrix (``initial_model``, `gauss_newton_model`). The model
     is positive definite, so the step minimises it on the plane of the gradient and the Newton
-    step (`_subspace_step`; Nocedal & Wright, sec. 4.1; the Newton step by `_cholesky_solve`):
-    no eigendecomposition (on GPUs a cuSOLVER call per iteration, 22 % of an iteration at 1,000
-    conditions on an H100).
+    step (`solvers.steps.subspace_step`; Nocedal & Wright, sec. 4.1; the Newton step by
+    `linalg.cholesky.cholesky_solve`): no eigendecomposition (on GPUs a cuSOLVER call per
+    iteration, 22 % of an iteration at 1,000 conditions on an H100).
   - ``"adam"``: plain ``optax.adam`` in z for ``max_iters`` steps (the paper's projected-gradient
     baseline, kept for comparison).
   - ``"lbfgs"``: ``optax.lbfgs`` with its zoom line search, stopped on the gradient norm.
 With ``n_starts > 1`` the optimiser also starts from random z (``start_scale`` rad RMS) and keeps
-the best result that is finite and within limits.
+the best result that is finite and within limits. The solvers themselves (`solvers`) know nothing
+of trajectories: this module sets up the reduced problems and their objective, hands them to one,
+and checks its results against the limits.
 
 Measured (``benchmarks/optimality.py``, 100 conditions of the default synthetic database, T = 100,
 2 shared CPU cores; gap = (ours - SLSQP) / SLSQP on the float64 cost, same problem and start):
@@ -87,8 +89,24 @@ from evojax_motion.compile_interp import (
 )
 from evojax_motion.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.errors import UserError
+from evojax_motion.linalg.cholesky import cholesky_solve as _cholesky_solve  # noqa: F401  # re-exported until the package layout move
+from evojax_motion.linalg.eigh2 import eigh_2x2 as _eigh_2x2  # noqa: F401  # re-exported until the package layout move
+from evojax_motion.linalg.reductions import sum_together
 from evojax_motion.objective import torque_cost
 from evojax_motion.precision import exact_matmuls
+from evojax_motion.solvers.base import Descent, HessianModel, SolverResult
+from evojax_motion.solvers.base import SolverResult as _Result  # noqa: F401  # re-exported until the package layout move
+from evojax_motion.solvers.chunking import in_chunks, optimise_in_chunks
+from evojax_motion.solvers.quasi_newton import (
+    ExactHessian,
+    StructuredBFGS,
+    gauss_newton_matrix,
+)
+from evojax_motion.solvers.quasi_newton import bfgs_update as _bfgs_update  # noqa: F401  # re-exported until the package layout move
+from evojax_motion.solvers.steps import ExactStep, SubspaceStep
+from evojax_motion.solvers.steps import subspace_step as _subspace_step  # noqa: F401  # re-exported until the package layout move
+from evojax_motion.solvers.steps import trust_region_step as _trust_region_step  # noqa: F401  # re-exported until the package layout move
+from evojax_motion.solvers.trust_region import trust_region
 from evojax_motion.timegrid import TimeGrid, derivatives
 
 METHODS = ("newton", "bfgs", "adam", "lbfgs")
@@ -101,27 +119,17 @@ DEFAULT_ITERS = {"newton": 25, "bfgs": 50, "adam": 25, "lbfgs": 25}
 LIMIT_TOL = 1e-5
 # Null directions moving q by less than this fraction of the joint's largest one are dropped.
 DIRECTION_RTOL = 1e-5
-# Trust region of the Newton method, in z [rad RMS of q]: a first step may move q by 0.3 rad.
-RADIUS_INIT, RADIUS_MIN, RADIUS_MAX = 0.3, 1e-7, 1e2
-STEP_SCALES = (1.0, 0.25, 0.0625)  # fractions of the trust-region step tried in one iteration
-# CPU loop: shorter step lengths are evaluated for the failing problems in groups of B / this.
-LAZY_GROUPS = 4
 # BFGS's first model of the torque cost (``initial_model="gauss-newton"``): the Gauss-Newton
-# matrix on every GN_NODE_STRIDE-th search node, plus GN_RIDGE times its largest diagonal entry.
+# matrix on every GN_NODE_STRIDE-th search node (plus a ridge, `quasi_newton.INITIAL_RIDGE`).
 # Paper configuration, 100 conditions, 2 CPU cores (CHANGELOG.md): strides 1, 2, 3
 # and 5 took 20, 20, 18 and 21.5 iterations (median); strides 1 and 3 cost 74 and 25 ms per 300
 # conditions.
 GN_NODE_STRIDE = 3
-GN_RIDGE = 1e-4
 INITIAL_MODELS = ("gauss-newton", "identity")
-RHO_ACCEPT, RHO_BAD, RHO_GOOD = 1e-4, 0.25, 0.75  # ratio of actual to predicted decrease
 # Default `OptimSettings.max_batch` (chosen on an H200 with the fused search gradient: chunks
 # of ~3,000 problems ran 20-23 % faster than of ~4,000 at 30,000 and 100,000 conditions;
 # docs/scaling.md).
 MAX_BATCH = 3072
-SECULAR_ITERS = 12  # Newton iterations on the trust-region secular equation
-COLUMN_REDUCE_MAX_N = 2  # `_row_reduce`: rows up to this length are summed column by column
-EIG_FLOOR = 1e-6  # eigenvalues below this fraction of the largest count as zero (float32 noise)
 
 
 def _check(ok: bool, name: str, expected: str, value) -> None:
@@ -169,8 +177,8 @@ class OptimSettings:
       passes' cost; paper configuration: 18 iterations median instead of 36, and p95 gap to
       SLSQP 1.1 % instead of 3.1 %, on the float32-rounded problems before
       `compile_interp.end_slopes`; 22 iterations median since, 19 since a rejected step keeps
-      the model, `_trust_region`) or ``"identity"`` (a multiple of
-      it, no derivatives).
+      the model, `solvers.quasi_newton.StructuredBFGS`) or ``"identity"`` (a multiple of it, no
+      derivatives).
     """
 
     n_components: int = 4
@@ -313,13 +321,6 @@ def search_nodes(grid: TimeGrid, stride: int = 1) -> tuple[np.ndarray, np.ndarra
     w[:-1] += 0.5 * np.diff(s)
     w[1:] += 0.5 * np.diff(s)
     return idx, w.astype(np.asarray(grid.w).dtype)
-
-
-class _Result(NamedTuple):
-    z: jnp.ndarray  # (B, J * F)
-    f: jnp.ndarray  # (B,) penalised objective
-    iterations: jnp.ndarray
-    converged: jnp.ndarray
 
 
 class Prepared(NamedTuple):
@@ -476,30 +477,17 @@ def joint_lists(dyn: Dynamics) -> bool:
     return not fused_products() and dyn.form == "scalar"
 
 
-def _sum_nodes(terms: list, axis: int = 0) -> tuple:
-    """Sums over ``axis`` (the nodes) of ``terms``, arrays of one shape, as one variadic
-    reduction: one loop on the CPU, the terms' shared producers computed once
-    (`make_search_value`; XLA's GPU compiler splits it into a few kernels). At least two
-    terms: a single sum is XLA:CPU's YNNPACK reduction, whose input XLA materialises first."""
-    assert len(terms) >= 2
-    zeros = tuple(jnp.zeros((), t.dtype) for t in terms)
-    return jax.lax.reduce(
-        tuple(terms), zeros, lambda xs, ys: tuple(x + y for x, y in zip(xs, ys, strict=True)),
-        (axis,),
-    )  # fmt: skip
-
-
 def penalty_model(z, problems: Problem, lo, hi, weight):
     """Gradient ``(B, J F)`` and Hessian ``(B, J F, J F)`` of `limit_penalty` at the search
     nodes for a batch of problems at ``z (B, J F)``, in closed form (q is linear in z, the
     penalty a sum of squared violations): per joint, ``2 weight D sum_m w_m v_m d_m`` and
     ``2 weight D sum_m w_m [q_m outside] d_m d_m^T``, ``d_m (F,)`` the joint's directions at
     node m, ``v_m`` its signed violation; joints do not mix (block diagonal). The BFGS method's
-    exact part of its model (`_trust_region`).
+    exact part of its model (`solvers.quasi_newton.StructuredBFGS`'s ``known``).
 
-    Elementwise products summed over the nodes in one reduction (`_sum_nodes`): as einsums, on 2
-    CPU cores, the Hessian's blocks alone were a dot of ~0.35 ms a pass at paper scale (in a
-    profiler trace), the whole model 800 against 257 us a call now."""
+    Elementwise products summed over the nodes in one reduction (`sum_together`): as einsums,
+    on 2 CPU cores, the Hessian's blocks alone were a dot of ~0.35 ms a pass at paper scale (in
+    a profiler trace), the whole model 800 against 257 us a call now."""
     dirs = problems.node_dirs[:, 0]  # (B, M, J, F)
     b, _, j, f = dirs.shape
     zf = z.reshape(b, 1, j, f)
@@ -508,7 +496,7 @@ def penalty_model(z, problems: Problem, lo, hi, weight):
     c = ((2.0 * weight * problems.duration)[:, None] * problems.node_w)[:, :, None]  # (B, M, 1)
     c_outside = jnp.where(viol != 0.0, c, 0.0)
     pairs = [(k, m) for k in range(f) for m in range(k, f)]
-    sums = _sum_nodes(
+    sums = sum_together(
         [c * viol * dirs[..., k] for k in range(f)]
         + [c_outside * dirs[..., k] * dirs[..., m] for k, m in pairs],
         axis=1,
@@ -525,8 +513,8 @@ def gauss_newton_model(dyn: Dynamics, problems: Problem, z, every: int):
     """Gauss-Newton model ``D sum_m w_m J_m^T J_m`` of the torque cost's Hessian for a batch of
     problems at ``z (B, J F)``: ``(B, J F, J F)``, ``J_m = d tau_m / d z`` (forward mode) at every
     ``every``-th search node, its weights scaled to the same total. The BFGS method's first
-    model of the torque cost (`_trust_region`)."""
-    b, _, _, j, f = problems.node_dirs.shape
+    model of the torque cost (`solvers.quasi_newton.StructuredBFGS`'s ``initial``)."""
+    j, f = problems.node_dirs.shape[3:]
     w = problems.node_w[:, ::every]
     w = w * (jnp.sum(problems.node_w, axis=1) / jnp.sum(w, axis=1))[:, None]
     nodes = problems.node_ls[:, :, ::every], problems.node_dirs[:, :, ::every]
@@ -536,8 +524,7 @@ def gauss_newton_model(dyn: Dynamics, problems: Problem, z, every: int):
         tau = jax.vmap(dyn.inverse)(*node_states(zf.reshape(j, f), prob, joint_lists(dyn)))
         return tau * jnp.sqrt(prob.duration * prob.node_w)[:, None]
 
-    jac = jax.vmap(jax.jacfwd(residual))(z, sub).reshape(b, -1, j * f)
-    return jnp.einsum("bri,brk->bik", jac, jac, precision=jax.lax.Precision.HIGHEST)
+    return gauss_newton_matrix(residual, z, sub)
 
 
 def make_objective(dyn: Dynamics, lo, hi, weight):
@@ -579,8 +566,8 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
     For the first-order methods (BFGS, Adam and L-BFGS, which take no second derivatives of
     ``f``; Newton takes its Hessian) where `fused_search_gradient`, ``f`` has a custom VJP. Its
     forward pass evaluates the value and the gradient as one reduction over the nodes with
-    1 + J F outputs (`_sum_nodes`): each node's gradient with respect to its q, qd and qdd by
-    reverse mode on that node's scalars (`Dynamics.torques`), contracted with the node's
+    1 + J F outputs (`sum_together`): each node's gradient with respect to its q, qd and qdd
+    by reverse mode on that node's scalars (`Dynamics.torques`), contracted with the node's
     directions. The value alone (the trial steps) is one reduction too.
 
     Why: XLA's CPU compiler emits one loop per output array and recomputes in each loop what
@@ -613,7 +600,7 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
     def value(z, problem: Problem):
         torque, penalty = jax.vmap(node_parts)(*node_states(z, problem, joint_lists=True))
         scale = scaled_nodes(problem)
-        sums = _sum_nodes([scale * torque, scale * penalty])
+        sums = sum_together([scale * torque, scale * penalty])
         return sums[0] + sums[1]
 
     def fwd(z, problem: Problem):
@@ -624,7 +611,7 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
         grads = [
             sum(gs[a][k] * dirs[a, :, k, m] for a in range(3)) for k in range(j) for m in range(f)
         ]
-        sums = _sum_nodes([scale * t for t in (h, *grads)])
+        sums = sum_together([scale * t for t in (h, *grads)])
         return sums[0], jnp.stack(sums[1:]).reshape(j, f)
 
     def bwd(g, ct):
@@ -634,417 +621,10 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
     return value
 
 
-def _trust_region_step(bm, g, radius, eig=None):
-    """Exact trust-region step of the model ``g.p + p.B.p / 2`` with ``|p| <= radius``, batched.
-
-    ``bm (B, n, n)`` symmetric (indefinite allowed), ``g (B, n)``, ``radius (B,)``. With
-    ``B = V diag(e) V^T``: ``p(lam) = -V (V^T g / (e + lam))``, lam = 0 if B is positive definite
-    and the Newton step fits, else the root above ``max(0, -e_min)`` of ``1/|p(lam)| = 1/radius``
-    (More-Sorensen: nearly linear in lam, a few Newton iterations converge); in the "hard case"
-    (g orthogonal to the lowest eigenvector) the step is completed along that eigenvector.
-    Returns ``p``, the predicted decrease ``-(g.p + p.B.p / 2)`` and the Newton decrement
-    ``g.B^-1.g / 2`` (inf where B is not positive definite). ``eig``: ``(e, v)`` of ``bm`` where
-    the caller has them (else `small_eigh`).
-    """
-    e, v = small_eigh(bm) if eig is None else eig  # ascending
-    tiny = jnp.finfo(e.dtype).tiny
-    scale = _row_reduce(jnp.abs(e), jnp.maximum)
-    floor = EIG_FLOOR * scale + tiny
-    gv = _matvec(jnp.swapaxes(v, 1, 2), g)  # V^T g
-    r = radius[:, None]
-    lam_lo = jnp.maximum(-e[:, :1], 0.0) + floor  # (B, 1)
-
-    def norm(lam):
-        return jnp.sqrt(_row_reduce((gv / (e + lam)) ** 2))
-
-    def secular(_, lam):
-        psi = jnp.maximum(norm(lam), tiny)
-        dpsi = -_row_reduce(gv**2 / (e + lam) ** 3) / psi
-        lam = lam + (1.0 / psi - 1.0 / r) * psi**2 / jnp.minimum(dpsi, -tiny)
-        return jnp.maximum(lam, lam_lo)
-
-    newton_fits = (e[:, :1] > floor) & (norm(0.0) <= r)
-    # Unrolled: straight-line elementwise code (for the 2 x 2 subspace model no reductions
-    # either, `_row_reduce`), which XLA fuses instead of launching a kernel per iteration.
-    lam = jax.lax.fori_loop(0, SECULAR_ITERS, secular, lam_lo, unroll=True)
-    lam = jnp.where(newton_fits, 0.0, lam)
-    pv = -gv / (e + lam)
-    # Hard case: even at lam_lo the step is shorter than the radius; go on along v_min.
-    short = ~newton_fits & (norm(lam) < r)
-    extra = jnp.sqrt(jnp.maximum(r**2 - _row_reduce(pv**2), 0.0))
-    sign = jnp.where(gv[:, :1] > 0, -1.0, 1.0)
-    pv = pv.at[:, :1].add(jnp.where(short, sign * extra, 0.0))
-    p = _matvec(v, pv)
-    pred = -_row_reduce(gv * pv + 0.5 * e * pv**2)[:, 0]
-    decrement = jnp.where(
-        e[:, 0] > 0, 0.5 * _row_reduce(gv**2 / jnp.maximum(e, floor))[:, 0], jnp.inf
-    )
-    return p, pred, decrement
-
-
-def _row_reduce(x, op=jnp.add):
-    """``x (..., n)`` reduced over its last axis by ``op`` (`jnp.add` or `jnp.maximum`):
-    ``(..., 1)``.
-
-    Up to ``n = COLUMN_REDUCE_MAX_N`` as ``op`` over the columns, elementwise: XLA fuses that
-    with what comes before and after, where a reduction starts a new GPU kernel (the 2 x 2
-    subspace model's secular iterations: 434 kernels a generation at 1,000 conditions on an H100
-    as reductions, 186 this way; CHANGELOG.md).
-    """
-    n = x.shape[-1]
-    if n > COLUMN_REDUCE_MAX_N:
-        whole = {jnp.add: jnp.sum, jnp.maximum: jnp.max}[op]
-        return whole(x, axis=-1, keepdims=True)
-    return functools.reduce(op, [x[..., i : i + 1] for i in range(n)])
-
-
-def _dot_rows(a, b):
-    """``sum(a * b, -1)``: row-wise dot products of batched vectors (elementwise, fusable)."""
-    return _row_reduce(a * b)[..., 0]
-
-
-def _matvec(m, x):
-    """``m (B, n, n) @ x (B, n)`` as elementwise products and a sum (fused by XLA, no GEMM)."""
-    return _row_reduce(m * x[:, None, :])[..., 0]
-
-
-def _bfgs_update(bm, s, y, accept):
-    """Powell-damped BFGS update of ``bm (B, n, n)`` with the pairs ``s, y (B, n)`` where
-    ``accept (B,)``; keeps it symmetric positive definite."""
-    bs = _matvec(bm, s)
-    sbs = _dot_rows(s, bs)
-    sy = _dot_rows(s, y)
-    theta = jnp.where(sy >= 0.2 * sbs, 1.0, 0.8 * sbs / jnp.maximum(sbs - sy, 1e-30))
-    r = theta[:, None] * y + (1.0 - theta[:, None]) * bs
-    sr = _dot_rows(s, r)
-    tiny = jnp.finfo(bm.dtype).tiny
-    upd = accept & (sbs > tiny) & (sr > tiny)
-    new = (
-        bm
-        - bs[:, :, None] * bs[:, None, :] / jnp.where(upd, sbs, 1.0)[:, None, None]
-        + r[:, :, None] * r[:, None, :] / jnp.where(upd, sr, 1.0)[:, None, None]
-    )
-    return jnp.where(upd[:, None, None], new, bm)
-
-
-def _cholesky_solve(a, b):
-    """``a^-1 b`` for symmetric positive definite ``a (B, n, n)`` and ``b (B, n)``, batched, by a
-    Cholesky factorisation unrolled into elementwise operations (n is small: no solver call per
-    iteration, which on GPUs is a cuSOLVER launch). Returns ``(x, ok)``, ``ok (B,)`` False where
-    ``a`` was not numerically positive definite (x is then not finite or meaningless)."""
-    n = a.shape[-1]
-    rows = jnp.arange(n)
-    cols = []  # columns of L, (B, n) each, zero above the diagonal
-    ok = jnp.ones(a.shape[:1], bool)
-    for k in range(n):
-        c = a[:, :, k]
-        for i in range(k):
-            c = c - cols[i] * cols[i][:, k : k + 1]
-        d = c[:, k]
-        ok = ok & (d > 0)
-        root = jnp.sqrt(jnp.where(d > 0, d, 1.0))
-        cols.append(jnp.where(rows >= k, c / root[:, None], 0.0))
-    y = []  # L y = b
-    for k in range(n):
-        t = b[:, k]
-        for i in range(k):
-            t = t - cols[i][:, k] * y[i]
-        y.append(t / cols[k][:, k])
-    x = [None] * n  # L^T x = y
-    for k in reversed(range(n)):
-        t = y[k]
-        for i in range(k + 1, n):
-            t = t - cols[k][:, i] * x[i]
-        x[k] = t / cols[k][:, k]
-    x = jnp.stack(x, axis=1)
-    return x, ok & jnp.all(jnp.isfinite(x), axis=1)
-
-
-def _eigh_2x2(a, b, c):
-    """Eigenvalues ``(B, 2)`` (ascending) and eigenvectors ``(B, 2, 2)`` (columns) of the
-    symmetric ``[[a, b], [b, c]]``, each ``(B,)``, in closed form (elementwise: no solver call,
-    no loop). The smaller eigenvalue is ``det / larger`` where the larger is positive: unlike
-    ``mean - radius`` it keeps its relative accuracy when the diagonal entries differ by orders
-    of magnitude (as the curvatures of a BFGS model do)."""
-    mean, half = 0.5 * (a + c), 0.5 * (a - c)
-    rad = jnp.hypot(half, b)
-    hi = mean + rad
-    lo = jnp.where(hi > 0, (a * c - b * b) / jnp.where(hi > 0, hi, 1.0), mean - rad)
-    phi = 0.5 * jnp.arctan2(b, half)  # (cos phi, sin phi) belongs to the larger eigenvalue
-    cs, sn = jnp.cos(phi), jnp.sin(phi)
-    v = jnp.stack([jnp.stack([-sn, cs], -1), jnp.stack([cs, sn], -1)], -1)
-    return jnp.stack([lo, hi], -1), v
-
-
-def _subspace_step(bm, pn, g, radius):
-    """Trust-region step of the positive definite model ``g.p + p.B.p / 2`` within ``|p| <=
-    radius`` on the plane of ``g`` and the Newton step ``-B^-1 g`` (two-dimensional subspace
-    minimisation: Byrd, Schnabel & Shultz 1988; Nocedal & Wright, sec. 4.1), batched:
-    ``bm (B, n, n)`` the model, ``pn (B, n)`` its Newton step, ``g (B, n)``, ``radius (B,)``.
-    The plane holds the Newton step (taken where it fits) and the dogleg path; on it the
-    subproblem is solved exactly (`_trust_region_step` on the 2 x 2 model). Returns ``p``, the
-    predicted decrease and the Newton decrement ``g.B^-1.g / 2``, like `_trust_region_step`,
-    without the n x n eigendecomposition (a cuSOLVER call per iteration on GPUs).
-
-    Paper configuration, 100 conditions, 40 iterations, 2 CPU cores, gap to float64 SLSQP:
-    median 0.021 % (the n x n exact step: 0.021 %; the dogleg step: 0.107 %); measured with
-    LAPACK solving the 2 x 2 problems, before the closed form (CHANGELOG.md).
-    """
-    tiny = jnp.finfo(g.dtype).tiny
-    u1 = -g / jnp.maximum(jnp.sqrt(_dot_rows(g, g)), tiny)[:, None]
-    w = pn - _dot_rows(pn, u1)[:, None] * u1
-    wn = jnp.sqrt(_dot_rows(w, w))
-    # A Newton step (nearly) along -g spans no plane: the second direction is then unused.
-    plane = wn > 1e-4 * jnp.sqrt(_dot_rows(pn, pn))
-    u2 = jnp.where(plane[:, None], w / jnp.maximum(wn, tiny)[:, None], 0.0)
-    bu1, bu2 = _matvec(bm, u1), _matvec(bm, u2)
-    b11, b12 = _dot_rows(u1, bu1), _dot_rows(u1, bu2)
-    b22 = jnp.where(plane, _dot_rows(u2, bu2), b11)
-    b2 = jnp.stack([jnp.stack([b11, b12], -1), jnp.stack([b12, b22], -1)], -2)
-    g2 = jnp.stack([_dot_rows(g, u1), _dot_rows(g, u2)], -1)
-    p2, pred, _ = _trust_region_step(b2, g2, radius, eig=_eigh_2x2(b11, b12, b22))
-    p = p2[:, :1] * u1 + p2[:, 1:] * u2
-    decrement = jnp.where(_dot_rows(g, bu1) < 0, 0.5 * _dot_rows(g, -pn), jnp.inf)
-    return p, pred, decrement
-
-
-def _trust_region(
-    fun, z0, free, settings: OptimSettings, exact: bool = True, known=None, initial=None
-) -> _Result:
-    """Batched trust-region Newton / quasi-Newton on ``fun(z (n,), i) -> scalar`` for B problems.
-
-    ``z0, free: (B, n)``; problem ``i`` of the batch is ``fun(z, i)``. With ``exact`` the model
-    Hessian is the exact one every ``settings.hessian_every`` iterations and a damped BFGS update
-    of it in between (skipped where it would not keep the curvature along the step positive).
-    An exact Hessian may be indefinite, so its steps solve the trust-region subproblem exactly
-    (`_trust_region_step`, an eigendecomposition per iteration).
-
-    Without ``exact`` (BFGS) no second derivatives of ``fun`` are taken. ``known(z (B, n)) ->
-    (gradient (B, n), Hessian (B, n, n))``, optional, is a cheap part of ``fun`` (the joint-limit
-    penalty, `penalty_model`: no dynamics): the model is its exact Hessian at the current point
-    plus a damped-BFGS model of the rest, which starts as ``initial (B, n, n)`` where
-    given (the Gauss-Newton matrix, `gauss_newton_model`, plus a small ridge) or else as a
-    multiple of the identity (a first step of ``RADIUS_INIT`` along -g), and learns from the
-    rest's gradient differences only (a structured quasi-Newton model: Dennis &
-    Schnabel, ch. 11). The penalty's curvature (``limit_penalty`` = 1e4 against torque
-    curvatures of ~1) switches on and off as samples cross a limit: a plain BFGS model had to
-    relearn it. The model is positive definite; its Newton step (`_cholesky_solve`) and the
-    gradient span the plane of the two-dimensional subspace step (`_subspace_step`).
-
-    The loop runs on the whole batch with an unbatched iteration counter, so the exact Hessian
-    is computed only on the iterations that need it (a batched predicate would turn ``lax.cond``
-    into a select that always evaluates both branches).
-    """
-    b, n = z0.shape
-    dtype = z0.dtype
-    tiny = jnp.finfo(dtype).tiny
-    idx = jnp.arange(b)
-    values = jax.vmap(fun)
-    value_grad = jax.vmap(jax.value_and_grad(fun))
-    hessian = jax.vmap(jax.hessian(fun))
-    eye = jnp.eye(n, dtype=dtype)
-    pair = free[:, :, None] & free[:, None, :]
-    lazy = not fixed_trip_loops()
-
-    def on_free(h, diagonal):
-        """``h (B, n, n)`` symmetrised on the free directions, plus ``diagonal (B, n)`` there.
-        Masked directions do not move q: unit curvature (and zero gradient) keeps them still."""
-        h = 0.5 * (h + jnp.swapaxes(h, 1, 2))
-        return jnp.where(pair, h, 0.0) + jnp.where(free, diagonal, 1.0)[:, :, None] * eye
-
-    def model_hessian(z):
-        h = on_free(hessian(z, idx), 0.0)
-        ok = jnp.all(jnp.isfinite(h), axis=(1, 2))
-        return jnp.where(ok[:, None, None], h, eye)
-
-    def row_norms(v):
-        """``|v_i|`` of ``v (B, n)``, at least ``tiny`` (a divisor)."""
-        return jnp.maximum(jnp.linalg.norm(v, axis=1), tiny)
-
-    def known_part(z):
-        """Gradient and Hessian of the known part (zero without it), on the free directions."""
-        if known is None:
-            return jnp.zeros_like(z), jnp.zeros((b, n, n), dtype)
-        g, h = known(z)
-        return jnp.where(free, g, 0.0), jnp.where(pair, h, 0.0)
-
-    def grad(z):
-        f, g = value_grad(z, idx)
-        ok = jnp.isfinite(f) & jnp.all(jnp.isfinite(g), axis=1)
-        return f, jnp.where(free & ok[:, None], g, 0.0), ok
-
-    scales = jnp.asarray(STEP_SCALES, dtype)
-
-    def acceptable(f_s, f, pred):
-        """Whether trial values ``f_s`` pass against the current ``f`` and the model's predicted
-        decreases ``pred`` (same shape): ``(ok, rho)``, rho the ratio of actual to predicted."""
-        rho = (f - f_s) / jnp.maximum(pred, tiny)
-        return jnp.isfinite(f_s) & (f_s < f) & (rho > RHO_ACCEPT), rho
-
-    def trial_values(z, p, active, f, pred_full):
-        """``(S, B)`` objective at ``z + scale * p`` for the `STEP_SCALES`. With ``lazy`` (the CPU
-        loop) the shorter lengths are evaluated only for the problems whose full step fails
-        (`acceptable`, ``pred_full`` its predicted decrease),
-        in groups of ``B / LAZY_GROUPS``; the others' are +inf, never used: the longest
-        acceptable length is taken, so the iterates are those of evaluating all."""
-        steps = scales[:, None, None] * jnp.where(active[:, None], p, 0.0)[None]
-        if not lazy:
-            return jax.vmap(lambda s: values(z + s, idx))(steps)
-        f_full = values(z + steps[0], idx)
-        fail = active & ~acceptable(f_full, f, pred_full)[0]
-        cap = max(1, b // LAZY_GROUPS)
-        order = jnp.nonzero(fail, size=b + cap, fill_value=b)[0]  # b: no problem (dropped)
-
-        def group(k, rest):
-            sel = jax.lax.dynamic_slice(order, (k * cap,), (cap,))
-            pick = jnp.minimum(sel, b - 1)
-            short = jax.vmap(lambda s: values(z[pick] + s[pick], pick))(steps[1:])
-            return rest.at[:, sel].set(short, mode="drop")
-
-        groups = (jnp.sum(fail) + cap - 1) // cap
-        rest = jnp.full((len(STEP_SCALES) - 1, b), jnp.inf, dtype)
-        rest = jax.lax.fori_loop(0, groups, group, rest)
-        return jnp.concatenate([f_full[None], rest])
-
-    # One pass of the loop evaluates the gradient at the point the previous pass proposed
-    # (``zp``; the first pass: z0), completes that iteration (acceptance, model update), then
-    # proposes the next step. The gradient and the exact Hessian are thus traced once each: at
-    # the start and inside the loop, they compiled twice (paper-scale step on 2 CPU cores:
-    # 14.7-16.4 s of XLA compile before, 12.2-13.3 s after). The iterates are those of the
-    # textbook order.
-    def finish(st):
-        """Accept or reject the proposed point ``zp`` and update the model there."""
-        z, f, g, bm, first = st["z"], st["f"], st["g"], st["bm"], st["first"]
-        f_p, g_p, ok_p = grad(st["zp"])
-        accept = first | (st["accept"] & ok_p)
-        z_new = jnp.where(accept[:, None], st["zp"], z)
-        f_new = jnp.where(accept, f_p, f)
-        g_new = jnp.where(accept[:, None], g_p, g)
-        if exact:  # the counter counts proposals: the first pass is iteration 0
-            bm_new = jax.lax.cond(
-                first | (st["it"] % settings.hessian_every == 0),
-                lambda: model_hessian(z_new),
-                lambda: _bfgs_update(bm, z_new - z, g_new - g, accept),
-            )
-            st = dict(st, bm=bm_new)
-        else:
-            gk, hk = known_part(z_new)
-            rest, rest_old = g_new - gk, g - st["gk"]
-            # A step that no length passed leaves the model as it is: the shrunk radius answers
-            # it. (Restarting the model as a multiple of the identity there, as before, threw
-            # the Gauss-Newton start and the learned curvature away: at 30 iterations, 300
-            # paper problems, p95 gap to SLSQP 3.1 % with the restart, 1.2 % without;
-            # CHANGELOG.md.)
-            updated = _bfgs_update(st["br"], z_new - z, rest - rest_old, accept)
-            sigma0 = row_norms(rest) / RADIUS_INIT
-            start = sigma0[:, None, None] * eye
-            if initial is not None:  # the Gauss-Newton model where it is usable
-                start = jnp.where(st["b0_ok"][:, None, None], st["b0"], start)
-            br = jnp.where(first, start, updated)
-            bm_new = br + hk
-            pn, ok = _cholesky_solve(bm_new, -g_new)
-            # Not numerically positive definite (float32): a steepest-descent step instead.
-            fallback = -g_new / row_norms(g_new)[:, None]
-            pn = jnp.where(ok[:, None], pn, RADIUS_INIT * fallback)
-            st = dict(st, bm=bm_new, br=br, gk=gk, pn=pn)
-        done = jnp.where(first, ~ok_p, st["done"])
-        return dict(st, z=z_new, f=f_new, g=g_new, done=done, first=False)
-
-    def propose(st, go=None):
-        """The next trust-region step from ``z``: ``zp``, whether a step length passed, radius."""
-        z, f, g, bm, radius = st["z"], st["f"], st["g"], st["bm"], st["radius"]
-        if exact:
-            p, _, decrement = _trust_region_step(bm, g, radius)
-        else:
-            p, _, decrement = _subspace_step(bm, st["pn"], g, radius)
-        live = ~st["done"] if go is None else ~st["done"] & go
-        conv_now = live & (decrement <= settings.tol * jnp.abs(f))
-        active = live & ~conv_now
-        # Values along the step at a few lengths (cheap next to the Hessian): a step the model
-        # overrates is shortened in the same iteration instead of costing one.
-        gp = jnp.sum(g * p, axis=1)
-        pbp = jnp.einsum("bi,bij,bj->b", p, bm, p)
-        pred = -(scales[:, None] * gp + 0.5 * scales[:, None] ** 2 * pbp)
-        f_s = trial_values(z, p, active, f, pred[0])  # (S, B)
-        ok_s, rho = acceptable(f_s, f, pred)
-        longest = jnp.argmax(ok_s, axis=0)  # index of the longest acceptable length
-        accept = active & jnp.any(ok_s, axis=0)
-        scale = scales[longest]
-        step = jnp.linalg.norm(p, axis=1)
-        rho_full = rho[0]
-        radius_new = jnp.where(
-            ~accept,
-            0.5 * scales[-1] * step,
-            jnp.where(
-                longest > 0,
-                scale * step,
-                jnp.where(
-                    rho_full < RHO_BAD,
-                    0.5 * step,
-                    jnp.where((rho_full > RHO_GOOD) & (step > 0.9 * radius), 2 * radius, radius),
-                ),
-            ),
-        )
-        radius_new = jnp.where(active, jnp.minimum(radius_new, RADIUS_MAX), radius)
-        return dict(
-            st,
-            zp=jnp.where(accept[:, None], z + scale[:, None] * p, z),
-            accept=accept,
-            active=active,
-            radius=radius_new,
-            it=st["it"] + 1,
-            iters=st["iters"] + active.astype(jnp.int32),
-            done=st["done"] | conv_now | (radius_new < RADIUS_MIN),
-            conv=st["conv"] | conv_now,
-        )
-
-    def body(st):
-        st = finish(st)
-        go_on = (st["it"] < settings.max_iters) & jnp.any(~st["done"])
-        st = jax.lax.cond(go_on, propose, lambda s: s, st)
-        return dict(st, pending=go_on)
-
-    def one_pass(_, st):
-        st = finish(st)
-        return propose(st, st["it"] < settings.max_iters)
-
-    state = dict(
-        z=z0,
-        f=jnp.zeros((b,), dtype),
-        g=jnp.zeros_like(z0),
-        bm=jnp.zeros((b, n, n), dtype),
-        radius=jnp.full((b,), RADIUS_INIT, dtype),
-        it=jnp.asarray(0, jnp.int32),
-        iters=jnp.zeros((b,), jnp.int32),
-        done=jnp.zeros((b,), bool),
-        conv=jnp.zeros((b,), bool),
-        zp=z0,
-        accept=jnp.zeros((b,), bool),
-        active=jnp.zeros((b,), bool),
-        first=jnp.asarray(True),
-        pending=jnp.asarray(True),
-    )
-    if not exact:  # the BFGS model's learned part, the known part's gradient, the Newton step
-        state.update(br=jnp.zeros((b, n, n), dtype), gk=jnp.zeros_like(z0), pn=jnp.zeros_like(z0))
-        if initial is not None:
-            b0 = initial
-            scale = jnp.max(jnp.abs(jnp.diagonal(b0, axis1=1, axis2=2)), axis=1)
-            state["b0"] = on_free(b0, GN_RIDGE * scale[:, None])
-            state["b0_ok"] = jnp.all(jnp.isfinite(b0), axis=(1, 2)) & (scale > 0)
-    if fixed_trip_loops():
-        # max_iters proposals take max_iters + 1 passes. A problem that is done changes nothing
-        # in a pass (it proposes its own point, which is not accepted), nor does the last pass
-        # (it proposes nothing), so the passes need no test of their own.
-        assert settings.max_iters is not None  # `OptimSettings.resolved`
-        st = jax.lax.fori_loop(0, settings.max_iters + 1, one_pass, state)
-    else:
-        st = jax.lax.while_loop(lambda s: s["pending"], body, state)
-    return _Result(z=st["z"], f=st["f"], iterations=st["iters"], converged=st["conv"])
-
-
 def fixed_trip_loops() -> bool:
-    """Whether `_trust_region` runs a fixed number of loop passes (accelerators) or stops when
-    the batch is done (CPU). Read at trace time.
+    """Whether the trust-region solver runs a fixed number of loop passes (accelerators) or stops
+    when the batch is done (CPU; `solvers.trust_region.trust_region`'s ``fixed_trips``). Read at
+    trace time.
 
     On a GPU, a ``while`` loop with a computed condition and a ``lax.cond`` each wait for their
     predicate on the host, once per iteration: in an H100 trace at 1,000 conditions, 82 gaps of
@@ -1057,101 +637,30 @@ def fixed_trip_loops() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _adam(fun, z0, free, settings: OptimSettings) -> _Result:
-    """``max_iters`` steps of plain ``optax.adam`` (the projected-gradient baseline), batched."""
-    import optax  # here: a run whose traced step is cached never needs it (0.15 s of imports)
+def run_solver(
+    settings: OptimSettings, fun: Callable, z0, free, known=None, initial=None
+) -> SolverResult:
+    """The solver of ``settings.method`` (`METHODS`; ``settings`` resolved) on B problems
+    ``fun(z (n,), i) -> scalar`` from ``z0 (B, n)``, moving the ``free (B, n)`` coordinates.
+    BFGS only: ``known`` the cheap part of the objective (`penalty_model`), ``initial (B, n,
+    n)`` the first model of the rest (`gauss_newton_model`) or None
+    (`solvers.quasi_newton.StructuredBFGS`)."""
+    method, max_iters = settings.method, settings.max_iters
+    assert max_iters is not None  # `OptimSettings.resolved`
+    if method in ("newton", "bfgs"):
+        model: HessianModel = ExactHessian(settings.hessian_every)
+        descent: Descent = ExactStep(small_eigh)
+        if method == "bfgs":
+            model, descent = StructuredBFGS(known, initial), SubspaceStep()
+        return trust_region(
+            fun, z0, free, model, descent, max_iters, settings.tol, fixed_trip_loops()
+        )
+    # Imported here: a run whose traced step is cached never needs optax (0.1-0.15 s of imports).
+    from evojax_motion.solvers import first_order
 
-    opt = optax.adam(settings.learning_rate)
-    b = z0.shape[0]
-
-    def one(z0, free, i):
-        def body(_, carry):
-            z, state = carry
-            g = jax.grad(fun)(z, i)
-            g = jnp.where(free & jnp.isfinite(g), g, 0.0)
-            updates, state = opt.update(g, state, z)
-            return optax.apply_updates(z, updates), state
-
-        z, _ = jax.lax.fori_loop(0, settings.max_iters, body, (z0, opt.init(z0)))
-        return _Result(z, fun(z, i), jnp.asarray(settings.max_iters, jnp.int32), jnp.asarray(False))
-
-    return jax.vmap(one)(z0, free, jnp.arange(b))
-
-
-def _lbfgs(fun, z0, free, settings: OptimSettings) -> _Result:
-    """``optax.lbfgs`` with its zoom line search; stops on the gradient norm or the budget."""
-    import optax
-
-    opt = optax.lbfgs()
-    b = z0.shape[0]
-
-    def one(z0, free, i):
-        def masked(z):
-            # Masked coordinates do not move q: the same function with a zero gradient there.
-            return fun(jnp.where(free, z, 0.0), i)
-
-        value_and_grad = optax.value_and_grad_from_state(masked)
-
-        def cond(carry):
-            _, _, it, done = carry
-            return (~done) & (it < settings.max_iters)
-
-        def body(carry):
-            z, state, it, _ = carry
-            f, g = value_and_grad(z, state=state)
-            updates, state = opt.update(g, state, z, value=f, grad=g, value_fn=masked)
-            z = optax.apply_updates(z, updates)
-            gnorm = optax.tree.norm(optax.tree.get(state, "grad"))
-            done = (gnorm <= settings.tol * (1.0 + jnp.abs(f))) | ~jnp.isfinite(f)
-            return z, state, it + 1, done
-
-        init = (z0, opt.init(z0), jnp.asarray(0, jnp.int32), jnp.asarray(False))
-        z, _, it, done = jax.lax.while_loop(cond, body, init)
-        return _Result(z, masked(z), it, done)
-
-    return jax.vmap(one)(z0, free, jnp.arange(b))
-
-
-# Every solver: (fun, z0, free, settings) -> _Result.
-_SOLVERS: dict[str, Callable[..., _Result]] = {
-    "newton": _trust_region,
-    "bfgs": functools.partial(_trust_region, exact=False),
-    "adam": _adam,
-    "lbfgs": _lbfgs,
-}
-
-
-def in_chunks(fn, args: tuple, max_batch: int | None):
-    """``fn(*args)`` over a batch of B rows, in equal chunks of at most ``max_batch`` rows run one
-    after another (``lax.map``), or at once where ``B <= max_batch`` (or it is None).
-
-    ``args``: pytrees of ``(B, ...)`` arrays (None for an absent one); ``fn`` returns a pytree
-    of ``(rows, ...)`` arrays whose rows depend on their own input rows only (up to rounding),
-    so the chunks' results, concatenated, are the batch's. The last chunk is filled up with
-    copies of the last row, whose results are dropped.
-    """
-    b = jax.tree_util.tree_leaves(args)[0].shape[0]
-    if max_batch is None or b <= max_batch:
-        return fn(*args)
-    n_chunks = -(-b // max_batch)
-    size = -(-b // n_chunks)
-    pad = n_chunks * size - b
-
-    def split(a):
-        a = jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a
-        return a.reshape(n_chunks, size, *a.shape[1:])
-
-    out = jax.lax.map(lambda chunk: fn(*chunk), jax.tree_util.tree_map(split, args))
-    return jax.tree_util.tree_map(lambda a: a.reshape(n_chunks * size, *a.shape[2:])[:b], out)
-
-
-def optimise_in_chunks(solve, problems, z0, free, max_batch: int | None, initial=None) -> _Result:
-    """``solve(problems, z0, free, initial) -> _Result`` over a batch of B problems in chunks
-    (`in_chunks`): ``problems`` a pytree of ``(B, ...)`` arrays, ``z0, free: (B, n)``,
-    ``initial``: ``(B, n, n)`` or None. A problem's result does not depend on the others in its
-    batch (the solvers stop a converged problem where it is; only rounding may differ between
-    batch sizes)."""
-    return in_chunks(solve, (problems, z0, free, initial), max_batch)
+    if method == "adam":
+        return first_order.adam(fun, z0, free, max_iters, settings.learning_rate)
+    return first_order.lbfgs(fun, z0, free, max_iters, settings.tol)
 
 
 def prepare_optimisation(
@@ -1205,21 +714,18 @@ def optimise_prepared(
     lo, hi = lower + settings.limit_margin, upper - settings.limit_margin
     weight = jnp.asarray(settings.limit_penalty, dtype)
     search_value = make_search_value(dyn, lo, hi, weight, settings.method)
-    solver = _SOLVERS[settings.method]
     c, j = prep.coeffs_ls.shape[:2]
     k = prep.null.shape[-1]
     n_s = settings.n_starts
     probs = prep.problems
 
-    def solve(chunk: Problem, z0, free, initial) -> _Result:
+    def solve(chunk: Problem, z0, free, initial) -> SolverResult:
         def fun(zf, i):
             prob = jax.tree_util.tree_map(lambda a: a[i], chunk)
             return search_value(zf.reshape(j, k), prob)
 
-        if settings.method != "bfgs":
-            return solver(fun, z0, free, settings)
         known = functools.partial(penalty_model, problems=chunk, lo=lo, hi=hi, weight=weight)
-        return solver(fun, z0, free, settings, known=known, initial=initial)
+        return run_solver(settings, fun, z0, free, known, initial)
 
     res = optimise_in_chunks(solve, probs, prep.z0, prep.free, settings.max_batch, prep.initial)
 
@@ -1231,7 +737,7 @@ def optimise_prepared(
     q_all, cost_all = jax.vmap(evaluate)(res.z, probs)
     finite = jnp.isfinite(cost_all) & jnp.all(jnp.isfinite(q_all), axis=(1, 2))
     within = jnp.all((q_all >= lower - LIMIT_TOL) & (q_all <= upper + LIMIT_TOL), axis=(1, 2))
-    results = _Result(
+    results = SolverResult(
         z=res.z.reshape(n_s, c, j, k),
         f=res.f.reshape(n_s, c),
         iterations=res.iterations.reshape(n_s, c),
