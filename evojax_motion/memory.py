@@ -32,11 +32,12 @@ Calibration (`FACTORS`, `BASE_BYTES`): peak resident memory (``/usr/bin/time``, 
 compilation cache off. ``configs/tiny.yaml``: 1.24 GiB as it is and 1.21 GiB at T = 400 (the
 compile dominates), 1.90 GiB at T = 2,000 (the time grid), 1.31 and 2.07 GiB at 4,000 and
 20,000 demonstrations (the synthesis, while the step compiles beside it), 1.66 and 2.28 GiB at
-3,000 and 12,000 conditions (the neighbour search); ``configs/catch_ball.yaml``: 0.98 GiB. On a
-GPU, the device peaks of ``configs/catch_ball.yaml`` in
-``benchmarks/results/generations_per_sec_gpu_h100*.json``: 0.14, 0.18, 2.24 and 10.7 GiB at 300,
-1,000, 10,000 and 100,000 conditions. The estimate is 0.85-1.3 times each CPU peak and 0.9-1.7
-times each GPU peak; ``tests/test_bad_input.py`` checks a tiny run.
+3,000 and 12,000 conditions (the neighbour search); ``configs/catch_ball.yaml``: 0.98 GiB. On
+one H100 (same runs, JAX's peak ``memory_stats``): the GPU's peak 0.14 GiB for the tiny run, 0.14,
+2.24 and 14.1 GiB for ``configs/catch_ball.yaml`` at 300, 10,000 and 100,000 conditions; the
+host's 3.7-4.1 GiB, and 7.2 GiB at 100,000 conditions. The estimate is 0.85-1.3 times each CPU
+peak, 0.84-1.26 times each GPU peak and 0.77-1.07 times each host peak beside the GPU;
+``tests/test_bad_input.py`` checks a tiny run on the CPU.
 """
 
 from __future__ import annotations
@@ -57,6 +58,8 @@ GIB = 2**30
 # Held by a run's process whatever its sizes: Python, JAX and MuJoCo (0.26 GiB after import), and
 # XLA compiling the programs (a tiny run's peak: 1.21-1.24 GiB; the paper configuration's 0.98).
 BASE_BYTES = int(1.2 * GIB)
+# The same beside an accelerator, its libraries loaded (CUDA: 3.7-4.1 GiB on an H100's host).
+HOST_BASE_BYTES = 4 * GIB
 # An accelerator's own share: XLA's workspace and the programs' constants (an H100: 0.14 GiB at
 # 300 conditions, where the arrays take a few MiB).
 DEVICE_BASE_BYTES = 128 * 2**20
@@ -117,7 +120,7 @@ class Estimate:
 
     def host(self) -> float:
         """Bytes of host memory beside an accelerator."""
-        return BASE_BYTES + _peak([p for p in self.parts if not p.on_device])[0]
+        return HOST_BASE_BYTES + _peak([p for p in self.parts if not p.on_device])[0]
 
     def device(self) -> float:
         """Bytes of each accelerator's memory."""
