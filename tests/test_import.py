@@ -1,15 +1,19 @@
 """``evojax-motion import`` end to end (evojax_motion.mocap.importer).
 
 Real data: the shipped UE ADL sample (Vicon CSV), imported for mahru_arm and arm6, and converted
-to C3D. Synthetic but exactly known motions: BVH and ASF/AMC reaches whose elbow angle the robot
-must reproduce, and a joint-angle CSV. Bad input: truncated file, missing marker, long gap,
-unknown format; the others are imported, the exit status says so, nothing is half-written.
+to C3D; with the published Kinova Gen3 model (continuous joints) from ``shared/robots`` beside
+the repository, and the whole UE ADL subset from ``shared/data`` (slow), when they are there.
+Synthetic but exactly known motions: BVH and ASF/AMC reaches whose elbow angle the robot must
+reproduce (the ASF/AMC one also while the actor walks and turns), and a joint-angle CSV. Bad
+input: truncated file, missing marker, long gap, unknown format; the others are imported, the
+exit status says so, nothing is half-written.
 
 Every import uses ``chunk=8`` and trials of <= 320 frames, so the IK compiles once per robot.
 """
 
 import argparse
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -33,13 +37,28 @@ from evojax_motion.mocap.vicon_csv import read_vicon_csv
 from evojax_motion.robot import load_robot
 
 SAMPLE = Path(__file__).resolve().parents[1] / "evojax_motion" / "data" / "ue_adl_sample"
+SHARED = Path(__file__).resolve().parents[2] / "shared"  # beside the repository, if there
+GEN3 = SHARED / "robots" / "kinova_gen3" / "gen3.xml"
+UE_ADL = SHARED / "data" / "ue_adl"
 TOL_RMS_SAMPLE = 0.02  # [m] key-point RMS after scaling, mahru_arm, every real trial
 TOL_RMS_ARM6 = 0.05  # [m] arm6 follows wrist and hand only, within its (non-human) workspace
 TOL_DURATION = 0.1  # [s] our onset/offset (5 % hand speed) vs the database's (3 % finger speed)
 TOL_ANGLE_DEG = 1.5  # the elbow angle survives direction-preserving scaling
 TOL_CALIBRATION_DEG = 3.0  # joint angles when the shoulder centre is fitted to other trials
 TOL_FK = 1e-5  # [m]
+TOL_SAME_RMS = 1e-4  # [m] the same reach imported walking and standing
+TOL_SAME_Q = 1e-3  # [rad]
+TOL_RMS_DONE = 0.015  # [m] key-point RMS p95, UE ADL onto the Gen3
+MIN_IMPORTED_DONE = 0.9  # fraction of the UE ADL trials imported onto the Gen3
 CHUNK = 8
+
+
+def _needs(path: Path, what: str) -> Path:
+    if not path.exists():
+        pytest.skip(
+            f"{what} ({path.relative_to(SHARED.parent)}, beside the repository) is not here"
+        )
+    return path
 
 
 def _run(argv):
@@ -131,8 +150,58 @@ def test_sample_imports_for_arm6():
     q = res.db.q
     assert (q >= robot.lower - 1e-6).all() and (q <= robot.upper + 1e-6).all()
     assert max(r.rms_error_m for r in res.imported) <= TOL_RMS_ARM6
-    # arm6 matches wrist and hand (weights 0 on shoulder and elbow)
+    # arm6's upper arm cannot hang: it matches the hand only, whose targets are lifted above its
+    # base (the turret at 0.6 m) and lie in front of it
     assert all(r.keypoint_rms_m["hand"] <= TOL_RMS_ARM6 for r in res.imported)
+    for r in res.imported:
+        assert r.lift_m > 0 and r.hand_target_box[0][2] >= 0.6 and r.hand_target_box[0][0] > 0
+
+
+def test_sample_imports_for_the_published_gen3():
+    """Kinova Gen3 as published (continuous joints 1, 3, 5, 7; joints named joint_N) imports the
+    sample with its defaults: hand targets in front of it and above its base, every primitive's
+    continuous joints on the rest posture's branch."""
+    from evojax_motion.mocap import retarget as rt
+
+    robot = load_robot(_needs(GEN3, "the published Kinova Gen3 model"))
+    res = import_trials(_params(paths=SUBSET, robot=str(GEN3)))
+    assert len(res.imported) == 5, format_report(res)
+    assert max(r.rms_error_m for r in res.imported) <= TOL_RMS_DONE
+    base = rt.base_height(robot)
+    for r in res.imported:
+        (x0, _, z0), (_, _, z1) = r.hand_target_box
+        assert x0 > 0 and z0 >= base + rt.BASE_CLEARANCE - 1e-9, (r.name, r.hand_target_box)
+        assert z1 < base + 0.5  # a table-top reach stays low, not lifted far
+    cont = robot.continuous
+    q = np.asarray(res.db.q)
+    mean = q.mean(axis=1)
+    assert (np.abs(mean - robot.rest)[:, cont] <= np.pi).all()
+    assert (np.abs(np.diff(q, axis=1))[..., cont] < 0.5).all()  # no 2 pi jumps
+    for i in range(5):
+        np.testing.assert_allclose(
+            db_cond := res.db.condition[i], _final_site(robot, q[i, -1]), atol=TOL_FK
+        )
+        assert db_cond[0] > 0
+
+
+@pytest.mark.slow
+def test_ue_adl_onto_the_published_gen3():
+    """The whole UE ADL subset (10 subjects x 2 tasks x 5 trials) onto the unedited Gen3 with
+    the defaults (no --weights): >= 90 % imported, key-point RMS p95 <= 15 mm, every hand target
+    in front of the robot and above its base."""
+    from evojax_motion.mocap import retarget as rt
+
+    robot = load_robot(_needs(GEN3, "the published Kinova Gen3 model"))
+    data = _needs(UE_ADL, "the UE ADL data")
+    res = import_trials(_params(paths=(str(data),), robot=str(GEN3), chunk=32))
+    s = res.summary()
+    assert s["imported"] >= MIN_IMPORTED_DONE * s["trials"], format_report(res)
+    assert s["rms_error_p95_m"] <= TOL_RMS_DONE
+    base = rt.base_height(robot)
+    assert all(r.hand_target_box[0][0] > 0 for r in res.imported)
+    assert all(r.hand_target_box[0][2] >= base for r in res.imported)
+    q0 = np.asarray(res.db.q)[:, 0]
+    assert np.ptp(q0[:, robot.continuous], axis=0).max() < np.pi  # one branch
 
 
 def test_cli_writes_a_loadable_database_and_report(tmp_path, sample_mahru):
@@ -368,41 +437,105 @@ Frame Time: 0.01
     _check_reach(res, theta, phi)
 
 
+def _asf_bone(i, name, direction, length, dof=""):
+    d = " ".join(map(str, direction))
+    extra = (
+        f"\n    dof {dof}\n    limits " + " ".join(["(-180 180)"] * len(dof.split())) if dof else ""
+    )
+    return (
+        f"  begin\n    id {i}\n    name {name}\n    direction {d}\n    length {length}\n"
+        f"    axis 0 0 0 XYZ{extra}\n  end\n"
+    )
+
+
+# y up; the clavicles along x (x points to the actor's left), so the actor faces +z
+REACH_ASF = (
+    ":version 1.10\n:name reach\n:units\n  mass 1.0\n  length 0.45\n  angle deg\n"
+    ":root\n  order TX TY TZ RX RY RZ\n  axis XYZ\n  position 0 0 0\n"
+    "  orientation 0 0 0\n:bonedata\n"
+    + _asf_bone(1, "lclavicle", (1, 0, 0), 7)
+    + _asf_bone(2, "rclavicle", (-1, 0, 0), 7)
+    + _asf_bone(3, "rhumerus", (0, -1, 0), 11, "rx ry rz")
+    + _asf_bone(4, "rradius", (0, -1, 0), 10, "rx")
+    + _asf_bone(5, "rwrist", (0, -1, 0), 1)
+    + _asf_bone(6, "rhand", (0, -1, 0), 3)
+    + _asf_bone(7, "lhipjoint", (1, -4, 0), 4)
+    + _asf_bone(8, "rhipjoint", (-1, -4, 0), 4)
+    + ":hierarchy\n  begin\n    root lclavicle rclavicle lhipjoint rhipjoint\n"
+    "    rclavicle rhumerus\n    rhumerus rradius\n    rradius rwrist\n    rwrist rhand\n  end\n"
+)
+ASF_UNIT = 0.0254 / 0.45  # [m] per length unit of REACH_ASF
+
+
+def _reach_amc(theta, phi, root=None) -> str:
+    """The reach ``theta``/``phi`` [deg] per frame; root: ``(F, 6)`` TX TY TZ [m] RX RY RZ [deg]
+    (None: standing at 40 units height)."""
+    if root is None:
+        root = np.tile([0.0, 40 * ASF_UNIT, 0.0, 0.0, 0.0, 0.0], (len(theta), 1))
+    lines = [":FULLY-SPECIFIED", ":DEGREES"]
+    for k, (t, p, r) in enumerate(zip(theta, phi, root), start=1):
+        pos = " ".join(f"{v / ASF_UNIT:.6f}" for v in r[:3])
+        rot = " ".join(f"{v:.6f}" for v in r[3:])
+        lines += [str(k), f"root {pos} {rot}", f"rhumerus {-t} 0 0", f"rradius {-p}"]
+    return "\n".join(lines) + "\n"
+
+
 def test_asf_amc_import_reproduces_the_elbow_angle(tmp_path):
     theta, phi = _reach()
-
-    def bone(i, name, direction, length, dof=""):
-        d = " ".join(map(str, direction))
-        extra = (
-            f"\n    dof {dof}\n    limits " + " ".join(["(-180 180)"] * len(dof.split()))
-            if dof
-            else ""
-        )
-        return (
-            f"  begin\n    id {i}\n    name {name}\n    direction {d}\n    length {length}\n"
-            f"    axis 0 0 0 XYZ{extra}\n  end\n"
-        )
-
-    asf = (
-        ":version 1.10\n:name reach\n:units\n  mass 1.0\n  length 0.45\n  angle deg\n"
-        ":root\n  order TX TY TZ RX RY RZ\n  axis XYZ\n  position 0 0 0\n"
-        "  orientation 0 0 0\n:bonedata\n"
-        + bone(1, "lclavicle", (1, 0, 0), 7)
-        + bone(2, "rclavicle", (-1, 0, 0), 7)
-        + bone(3, "rhumerus", (0, -1, 0), 11, "rx ry rz")
-        + bone(4, "rradius", (0, -1, 0), 10, "rx")
-        + bone(5, "rwrist", (0, -1, 0), 1)
-        + bone(6, "rhand", (0, -1, 0), 3)
-        + ":hierarchy\n  begin\n    root lclavicle rclavicle\n    rclavicle rhumerus\n"
-        "    rhumerus rradius\n    rradius rwrist\n    rwrist rhand\n  end\n"
-    )
-    frames = [":FULLY-SPECIFIED", ":DEGREES"]
-    for k, (t, p) in enumerate(zip(theta, phi), start=1):
-        frames += [str(k), "root 0 40 0 0 0 0", f"rhumerus {-t} 0 0", f"rradius {-p}"]
-    (tmp_path / "07.asf").write_text(asf)
-    (tmp_path / "07_01.amc").write_text("\n".join(frames) + "\n")
+    (tmp_path / "07.asf").write_text(REACH_ASF)
+    (tmp_path / "07_01.amc").write_text(_reach_amc(theta, phi))
     res = import_trials(_params(format="asf-amc", paths=(str(tmp_path),), rate=100.0))
     _check_reach(res, theta, phi)
+
+
+def test_asf_amc_reach_while_walking_imports_as_standing(tmp_path):
+    """HDM05-style: the actor, facing 30 deg away from the lab's axes, walks 0.8 m forward and
+    bobs 2 cm while the arm reaches. The robot's shoulder is fixed, so its targets are taken
+    relative to the person's shoulder and heading (hips): the clip imports with the error, the
+    movement and the joint angles of the same reach standing still. Taken in the lab's frame
+    (``--reference lab``), the walk moves the shoulder's target 0.8 m and the trial is skipped,
+    its reason giving the figures."""
+    theta, phi = _reach()
+    n = len(theta)
+    s = np.arange(n) / (n - 1)
+    walk = np.zeros((n, 6))
+    facing = np.deg2rad(30.0)  # about the vertical (RY)
+    step = 0.8 * (10 * s**3 - 15 * s**4 + 6 * s**5)  # [m] forward, along the facing direction
+    walk[:, 0], walk[:, 2] = step * np.sin(facing), step * np.cos(facing)
+    walk[:, 1] = 40 * ASF_UNIT + 0.02 * np.sin(2 * np.pi * 3 * s)  # stepping bob [m]
+    walk[:, 4] = np.rad2deg(facing)
+    (tmp_path / "07.asf").write_text(REACH_ASF)
+    (tmp_path / "07_01.amc").write_text(_reach_amc(theta, phi))
+    (tmp_path / "07_02.amc").write_text(_reach_amc(theta, phi, walk))
+    res = import_trials(_params(format="asf-amc", paths=(str(tmp_path),), rate=100.0))
+    assert len(res.imported) == 2, format_report(res)
+    stand, walking = res.reports
+    assert walking.heading == "markers lhipjoint -> rhipjoint"
+    assert abs(walking.rms_error_m - stand.rms_error_m) <= TOL_SAME_RMS
+    assert walking.duration_s == pytest.approx(stand.duration_s)
+    np.testing.assert_allclose(res.db.q[1], res.db.q[0], atol=TOL_SAME_Q)
+    _check_reach(
+        import_trials(_params(format="asf-amc", paths=(str(tmp_path / "07_02.amc"),), rate=100.0)),
+        theta,
+        phi,
+    )
+    # the lab frame: the walk is in the shoulder's target
+    lab = import_trials(
+        _params(format="asf-amc", paths=(str(tmp_path / "07_02.amc"),), rate=100.0, reference="lab")
+    )
+    r = lab.reports[0]
+    assert r.status == "skipped" and r.rms_error_m > 0.05, format_report(lab)
+    m = re.fullmatch(
+        r"IK error: key-point RMS (\d+) mm > --max-rms 50 mm; largest (\d+) mm at frame (\d+) "
+        r"\((\d+\.\d\d) s, (shoulder|elbow|wrist|hand)\)",
+        r.reason,
+    )
+    assert m, r.reason
+    assert int(m[1]) == round(1e3 * r.rms_error_m) and int(m[2]) == round(1e3 * r.max_error_m)
+    frame = int(m[3])
+    assert float(m[4]) == pytest.approx(frame / 100.0, abs=0.006)
+    assert round(r.onset_s * 100) <= frame < r.frames  # in the movement
+    assert lab.summary()["skipped_reasons"] == {"IK error too large": 1}
 
 
 def test_angles_csv_import(tmp_path):
@@ -427,6 +560,36 @@ def test_angles_csv_import(tmp_path):
     (tmp_path / "other.csv").write_text("time,a,b\n0,1,2\n0.01,1,2\n0.02,1,2\n")
     res = import_trials(_params(format="angles-csv", paths=(str(tmp_path / "other.csv"),)))
     assert res.db is None and "no column is named after a robot joint" in res.reports[0].reason
+
+
+def test_angles_csv_continuous_joints_land_on_the_rest_branch(tmp_path):
+    """Angles of the Gen3's continuous joints recorded whole turns away from its rest posture
+    (joint_1 from 2 pi + 0.1, joint_3 from -pi) are imported on the rest posture's branch."""
+    robot = load_robot(_needs(GEN3, "the published Kinova Gen3 model"))
+    rest = np.asarray(robot.rest)
+    n = N_PRE + N_MOVE + N_POST
+    s = np.clip((np.arange(n) - N_PRE) / N_MOVE, 0.0, 1.0)
+    mj = 10 * s**3 - 15 * s**4 + 6 * s**5
+    goal = rest + np.array([0.6, 0.4, 0.3, 0.5, -0.4, 0.3, 0.2])
+    q = rest + np.outer(mj, goal - rest)
+    turns = np.array([1, 0, -1, 0, 2, 0, -1]) * 2 * np.pi  # continuous joints only
+    header = "time," + ",".join(robot.joint_names)
+    body = "\n".join(
+        f"{k / 100:.2f}," + ",".join(f"{v:.6f}" for v in row) for k, row in enumerate(q + turns)
+    )
+    (tmp_path / "reach.csv").write_text(header + "\n" + body + "\n")
+    res = import_trials(
+        _params(
+            format="angles-csv",
+            paths=(str(tmp_path),),
+            robot=str(GEN3),
+            cutoff_hz=None,
+            angle_unit="rad",
+        )
+    )
+    assert len(res.imported) == 1, format_report(res)
+    np.testing.assert_allclose(res.db.q[0, -1], goal, atol=0.02)
+    np.testing.assert_allclose(res.db.q[0, 0], rest, atol=0.02)
 
 
 REACH_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reach_real.yaml"

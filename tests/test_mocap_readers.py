@@ -412,6 +412,76 @@ def test_body_frame_from_the_shoulder_line():
     np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
 
 
+def _person(n=120):
+    """Key points and two hip markers of a person standing still ``(F, 3)`` each [m], z up."""
+    still = {
+        "shoulder": [0.0, -0.2, 1.4],
+        "left_shoulder": [0.0, 0.2, 1.4],
+        "elbow": [0.05, -0.22, 1.12],
+        "hand": [0.3, -0.2, 1.0],
+        "LHIP": [0.0, 0.1, 0.9],
+        "RHIP": [0.0, -0.1, 0.9],
+    }
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    pts = {k: np.repeat(np.asarray(v)[None], n, axis=0) for k, v in still.items()}
+    pts["hand"] = pts["hand"] + s * [0.25, 0.0, 0.15]  # the arm reaches forward and up
+    return pts
+
+
+def test_body_frames_follow_a_person_who_walks_and_turns():
+    """A person who walks 0.8 m, bobs and turns 1.2 turns while reaching has, in `body_frames`
+    with the shoulder as origin and the hips as heading, the key points of the same reach done
+    standing still; `heading_turn` is the turn, unwrapped past pi, tilt left out."""
+    up = np.array([0.0, 0.0, 1.0])
+    still = _person()
+    n = len(still["hand"])
+    s = np.linspace(0.0, 1.0, n)
+    turn = 2.4 * np.pi * s**2
+    shift = np.stack([0.8 * s, 0.1 * s, 0.02 * np.sin(12 * s)], axis=1)
+    rot = np.stack([_rotation(up, a) for a in turn])
+    moved = {k: np.einsum("fij,fj->fi", rot, v) + shift for k, v in still.items()}
+
+    def body(pts):
+        heading = pts["RHIP"] - pts["LHIP"]
+        origin, r = mk.body_frames(pts, up, None, pts["shoulder"], heading)
+        return {k: np.einsum("fij,fj->fi", r, v - origin) for k, v in pts.items()}
+
+    still_body, moved_body = body(still), body(moved)
+    for k in still:
+        np.testing.assert_allclose(moved_body[k], still_body[k], atol=TOL_POS)
+    np.testing.assert_allclose(still_body["shoulder"], 0.0, atol=TOL_POS)
+    # frame 0 is body_frame's: x forward, y left
+    np.testing.assert_allclose(still_body["left_shoulder"][0], [0.0, 0.4, 0.0], atol=TOL_POS)
+    tilted = (moved["RHIP"] - moved["LHIP"]) + np.outer(np.sin(5 * s), up)
+    np.testing.assert_allclose(mk.heading_turn(tilted, up), turn, atol=1e-9)
+    # without a heading the frame is frame 0's, fixed: the walk stays in the coordinates
+    origin, r = mk.body_frames(moved, up, None)
+    np.testing.assert_allclose(origin, np.broadcast_to(moved["shoulder"][0], (n, 3)))
+    assert np.ptp(np.einsum("fij,fj->fi", r, moved["shoulder"] - origin), axis=0).max() > 0.7
+    with pytest.raises(TrialError, match=r"heading at frame 3: its horizontal part is 0\.0 mm"):
+        vertical = tilted.copy()
+        vertical[3] = up
+        mk.heading_turn(vertical, up)
+
+
+def test_heading_markers_of_the_models():
+    """The heading comes from the model's trunk markers when a trial has them, else from the
+    shoulder line; UE ADL's are the left acromion cluster and the sternum."""
+    d = read_vicon_csv(TRIAL)
+    model = mk.MARKER_MODELS["ue_adl"]
+    assert model.heading == (("LSHO1", "LSHO2", "LSHO3", "LSHO4"), ("STRN",))
+    pts = {"shoulder": d.get("RSHO1"), "left_shoulder": d.get("LSHO1")}
+    h = mk.heading_direction(d, pts, model)
+    lsho = [d.get(f"LSHO{i}") for i in range(1, 5)]
+    np.testing.assert_allclose(h.direction, d.get("STRN") - np.mean(lsho, axis=0))
+    np.testing.assert_allclose(h.centre, np.mean([*lsho, d.get("STRN")], axis=0))
+    assert h.source == "markers LSHO1+LSHO2+LSHO3+LSHO4 -> STRN"
+    without = d._replace(names=tuple("X" if n == "STRN" else n for n in d.names))
+    h = mk.heading_direction(without, pts, model)
+    np.testing.assert_allclose(h.direction, pts["shoulder"] - pts["left_shoulder"])
+    assert h.centre is None and h.source == "shoulder line"
+
+
 def test_marker_models_builtin_and_yaml(tmp_path):
     assert set(mk.MARKER_MODELS) >= {"ue_adl", "plug_in_gait", "cmu_bvh", "cmu_asf"}
     good = tmp_path / "m.yaml"
@@ -422,11 +492,15 @@ def test_marker_models_builtin_and_yaml(tmp_path):
     m = mk.load_marker_model(str(good))
     assert m.keypoints["hand"] == mk.KeyPointDef(markers=("RFIN",), cluster=("H1", "H2", "H3"))
     assert m.required() == ("shoulder", "elbow", "hand")
+    assert m.heading is None
+    good.write_text(good.read_text() + "heading: [[C7], [CLAV, STRN]]\n")
+    assert mk.load_marker_model(str(good)).heading == (("C7",), ("CLAV", "STRN"))
     for text, match in [
         ("keypoints: {hand: [A], knee: [B]}\nforward: x", "unknown key point"),
         ("keypoints: {hand: [A]}\nforward: x", "at least one more"),
         ("keypoints: {hand: [A], elbow: [B]}", "left_shoulder"),
         ("keypoints: {hand: [A], elbow: [B]}\nforward: w", "axis"),
+        ("keypoints: {hand: [A], elbow: [B]}\nforward: x\nheading: [C7]", "heading"),
         (
             "keypoints: {hand: {markers: [A], between: [[a], [b]]}, elbow: [B]}\nforward: x",
             "exactly one",

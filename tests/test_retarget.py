@@ -3,6 +3,7 @@ segmentation and resampling. References: C MuJoCo kinematics, trajectories the r
 produced (their key points are reachable, so the IK must find them), analytic speed profiles."""
 
 import functools
+from pathlib import Path
 
 import jax
 import mujoco
@@ -21,6 +22,18 @@ TOL_FK = 1e-5  # [m] float32 FK vs C MuJoCo
 TOL_IK = 1e-3  # [m] reachable key points, after the warm-up and 4 LM iterations per frame
 TOL_LIMIT = 1e-6  # [rad]
 B, F = 2, 64  # IK test shapes (one compilation per robot)
+ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"  # published arms, unedited
+GEN3 = ROBOTS / "kinova_gen3" / "gen3.xml"
+XARM7 = ROBOTS / "ufactory_xarm7" / "xarm7_nohand.xml"
+
+
+def _published(path):
+    if not path.is_file():
+        pytest.skip(
+            f"{path.name}: the published robot models (folder 'shared/robots' beside the "
+            "repository) are not here"
+        )
+    return load_robot(path)
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +63,8 @@ def test_default_keypoints_match_mujoco(name, mahru, arm6):
     kp = rt.robot_keypoints(robot)
     assert kp.human == ("shoulder", "elbow", "wrist", "hand")
     assert kp.robot[-1] == f"site:{robot.site_name}"
-    expected_w = (1.0, 1.0, 1.0, 1.0) if name == "mahru_arm" else (0.0, 0.0, 1.0, 1.0)
+    # mahru's upper arm hangs as a person's: every key point; arm6's cannot: the hand only
+    expected_w = (1.0, 1.0, 1.0, 1.0) if name == "mahru_arm" else (0.0, 0.0, 0.0, 1.0)
     assert kp.weights == expected_w
     q = np.clip(np.asarray(robot.rest) + 0.3, robot.lower, robot.upper)
     np.testing.assert_allclose(
@@ -62,8 +76,7 @@ def test_keypoint_maps_custom_guessed_and_bad(mahru):
     robot, _ = mahru
     kp = rt.robot_keypoints(robot, {"forearm": "elbow", "hand": "hand"}, {"elbow": 0.5})
     assert kp.robot == ("body:forearm", "site:hand") and kp.weights == (0.5, 1.0)
-    guessed = rt._guess_keypoints(robot)
-    assert guessed == {
+    assert rt.guess_keypoints(robot) == {
         "body:upper_arm": "shoulder",
         "body:forearm": "elbow",
         "body:hand": "wrist",
@@ -84,6 +97,83 @@ def test_keypoint_maps_custom_guessed_and_bad(mahru):
         rt.parse_weights("hand=x")
 
 
+def test_keypoints_from_the_kinematic_chain(arm6):
+    """arm6's joints and bodies carry other names than mahru's; the kinematic rule (shoulder after
+    the base yaw, elbow and wrist at the first and last bending joint) finds its arm."""
+    robot, _ = arm6
+    assert rt.guess_keypoints(robot) == {
+        "body:upper_link": "shoulder",
+        "body:fore_link": "elbow",
+        "body:wrist_head": "wrist",
+        "site:tool": "hand",
+    }
+    assert rt.base_height(robot) == pytest.approx(0.6)  # the turret's origin
+
+
+@pytest.mark.parametrize(
+    "path, expected",
+    [
+        (
+            GEN3,
+            {
+                "body:half_arm_1_link": "shoulder",  # joint_2: joint_1 is the base yaw
+                "body:forearm_link": "elbow",  # joint_4: joint_3 rolls about the upper arm
+                "body:spherical_wrist_2_link": "wrist",  # joint_6
+                "site:pinch_site": "hand",
+            },
+        ),
+        (
+            XARM7,
+            {
+                "body:link2": "shoulder",
+                "body:link4": "elbow",
+                "body:link6": "wrist",  # at the same point as joint5, a roll
+                "site:attachment_site": "hand",
+            },
+        ),
+    ],
+    ids=["gen3", "xarm7"],
+)
+def test_published_arms_keypoints_and_weights(path, expected):
+    """Names such as Gen3's ``shoulder_link`` (joint_1's body, 13 cm below the shoulder pivot)
+    do not mislead the rule. Neither arm's upper arm can hang (joint_2 stops 52 / 60 deg short
+    of straight down): the hand alone is matched."""
+    robot = _published(path)
+    assert rt.guess_keypoints(robot) == expected
+    kp = rt.robot_keypoints(robot)
+    assert kp.weights == (0.0, 0.0, 0.0, 1.0)
+    ids = dict(zip(kp.human, kp.body_ids))
+    assert not rt.upper_arm_can_hang(robot, ids["shoulder"], ids["elbow"])
+    # user weights still win
+    assert rt.robot_keypoints(robot, None, {"wrist": 0.5}).weights == (0.0, 0.0, 0.5, 1.0)
+
+
+def test_default_weights_follow_the_hanging_test(mahru, arm6):
+    for (robot, _), hangs in ((mahru, True), (arm6, False)):
+        kp = rt.robot_keypoints(robot)
+        ids = dict(zip(kp.human, kp.body_ids))
+        assert rt.upper_arm_can_hang(robot, ids["shoulder"], ids["elbow"]) is hangs
+    # a map without an elbow: the hand only
+    robot, _ = mahru
+    assert rt.default_weights(robot, ("shoulder", "hand"), (2, -1)) == {
+        "shoulder": 0.0,
+        "hand": 1.0,
+    }
+
+
+def test_lift_above_base():
+    targets = np.zeros((5, 3, 3))
+    targets[:, :, 2] = [0.3, 0.1, -0.2]  # shoulder, elbow, hand heights
+    targets[2, -1, 2] = -0.3  # the lowest hand target
+    lifted, lift = rt.lift_above_base(targets, base_z=0.1, clearance=0.05)
+    assert lift == pytest.approx(0.45)
+    np.testing.assert_allclose(lifted - targets, np.broadcast_to([0, 0, 0.45], targets.shape))
+    assert lifted[:, -1, 2].min() == pytest.approx(0.15)
+    same, lift = rt.lift_above_base(targets, base_z=-1.0)  # already above: unchanged
+    assert lift == 0.0
+    np.testing.assert_array_equal(same, targets)
+
+
 def test_scale_to_robot_keeps_directions_and_sets_lengths():
     rng = np.random.default_rng(0)
     human = np.cumsum(rng.normal(scale=0.2, size=(30, 4, 3)), axis=1)
@@ -101,8 +191,15 @@ def test_scale_to_robot_keeps_directions_and_sets_lengths():
     np.testing.assert_allclose(cos, 1.0, atol=1e-12)
     ratio = out.robot_lengths.sum() / np.median(np.linalg.norm(seg_h, axis=-1), axis=0).sum()
     np.testing.assert_allclose(out.targets[:, 0], rest[0] + ratio * human[:, 0], atol=1e-12)
-    with pytest.raises(TrialError, match="coincide"):
-        rt.scale_to_robot(np.zeros((3, 4, 3)), rest)
+    # the root as the frame's origin in every frame: the robot's root target does not move
+    fixed = rt.scale_to_robot(human - human[:, :1], rest)
+    np.testing.assert_allclose(fixed.targets[:, 0], np.broadcast_to(rest[0], (30, 3)), atol=0)
+    relative = out.targets[:, 1:] - out.targets[:, :1]  # the chain, rebuilt the same way
+    np.testing.assert_allclose(fixed.targets[:, 1:] - rest[0], relative, atol=1e-12)
+    bad = human.copy()
+    bad[7, 2] = bad[7, 1]
+    with pytest.raises(TrialError, match="key points 1 and 2 of the chain coincide at frame 7"):
+        rt.scale_to_robot(bad, rest)
 
 
 def _smooth_trajectory(robot, seed):

@@ -7,16 +7,19 @@ robot model:
     evojax-motion import --format vicon-csv --robot mahru_arm --out demos.npz DATA_DIR
 
 Per trial: read (`vicon_csv`, `c3d_file`, `bvh`, `asf_amc`, `angles_csv`), fill marker gaps up to
-``--max-gap`` frames, low-pass filter, build the human key points (`markers`), scale them to the
-robot and solve the key-point IK for every frame (`retarget`, one jit for all trials), cut the
-movement at hand-speed onset/offset, resample to ``--samples`` T, and take the final hand position
-as the condition. Joint-angle CSV files skip the IK (columns map to joints).
+``--max-gap`` frames, low-pass filter, build the human key points (`markers`), express them
+relative to the person's shoulder (``--reference``) in a frame that turns with the trunk, scale
+them to the robot's reach and solve the key-point IK for every frame (`retarget`, one jit for all
+trials), keep continuous joints on the rest posture's 2 pi branch (`angles.on_rest_branch`), cut
+the movement at hand-speed onset/offset, resample to ``--samples`` T, and take the final hand
+position as the condition. Joint-angle CSV files skip the IK (columns map to joints).
 
 A trial that cannot be imported (unreadable or truncated file, a required marker missing, a gap
 longer than ``--max-gap``, no movement, IK error above ``--max-rms``) is skipped with its reason and
-the others are imported. Exit status: 0 every trial imported; 1 some trials skipped (the others
-are saved); 2 a user error (bad option, no input, no trial importable): nothing is written. The
-database is written atomically (`database.save_database`).
+its figure (e.g. ``IK error: key-point RMS 61 mm > --max-rms 50 mm; largest 89 mm at frame 312
+(3.12 s, wrist)``), and the others are imported. Exit status: 0 every trial imported; 1 some
+trials skipped (the others are saved); 2 a user error (bad option, no input, no trial
+importable): nothing is written. The database is written atomically (`database.save_database`).
 """
 
 from __future__ import annotations
@@ -34,11 +37,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from evojax_motion.angles import on_rest_branch
 from evojax_motion.errors import UserError
 from evojax_motion.mocap import markers as mk
 from evojax_motion.mocap.markers import MarkerData, TrialError
 
 FORMATS = ("vicon-csv", "c3d", "bvh", "asf-amc", "angles-csv")
+REFERENCES = ("shoulder", "lab")  # --reference, besides a marker or key point name
 DEFAULT_MARKER_MODEL = {
     "vicon-csv": "ue_adl",
     "c3d": "ue_adl",
@@ -67,6 +72,7 @@ class ImportParams:
     joints: tuple[str, ...] | None = None
     site: str | None = None
     keypoints: str | Mapping[str, str] | None = None  # "body:x=shoulder,..." or a mapping
+    reference: str = "shoulder"  # shoulder | lab | a marker or key point name
     marker_model: str | None = None
     static: str | None = None
     skeleton: str | None = None
@@ -111,6 +117,11 @@ class ImportParams:
         need(self.chunk >= 1 and self.ik_iters >= 1, "--chunk and --ik-iters: expected >= 1")
         need(self.unit_scale is None or self.unit_scale > 0, "--unit-scale: expected > 0")
         need(
+            isinstance(self.reference, str) and self.reference.strip() != "",
+            f"--reference: expected {' or '.join(REFERENCES)} or a marker name, "
+            f"got {self.reference!r}",
+        )
+        need(
             self.capacity is None or self.capacity >= 1,
             f"--capacity: expected an integer >= 1, got {self.capacity}",
         )
@@ -133,6 +144,9 @@ class TrialReport:
     onset_s: float = math.nan
     duration_s: float = math.nan
     peak_hand_speed: float = math.nan  # [m/s] human hand (robot hand for angle files)
+    heading: str = ""  # what turns the body frame with the person (markers, shoulder line...)
+    lift_m: float = 0.0  # [m] targets raised to keep the hand above the robot's base
+    hand_target_box: list = field(default_factory=list)  # [[x, y, z] min, max] over the movement
     rms_error_m: float = math.nan  # key-point RMS over the movement, after scaling
     max_error_m: float = math.nan
     keypoint_rms_m: dict = field(default_factory=dict)
@@ -312,6 +326,7 @@ class _Prepared(NamedTuple):
     targets: np.ndarray
     rate: float
     segment: Any
+    first_frame: int  # the file's frame of targets[0] (frames trimmed at the start before it)
 
 
 def _progress(iterable, total, desc, quiet):
@@ -389,7 +404,9 @@ def import_trials(params: ImportParams) -> ImportResult:
             )
         rest_clipped = np.clip(np.asarray(robot.rest), lower, upper)
         rest_points = rt.rest_keypoints(dyn, kp, rest_clipped)
-        prepared = _prepare_markers(params, model, kp, rest_points, files, reports)
+        # a shoulder that is a reference only: the hand's targets stay above the robot's base
+        base_z = rt.base_height(robot) if kp.weights[0] == 0 else None
+        prepared = _prepare_markers(params, model, kp, rest_points, base_z, files, reports)
         t_ik = time.perf_counter()
         settings = rt.IKSettings(smooth=params.smooth, iters=params.ik_iters)
         prepared_q = _solve(params, robot, dyn, kp, settings, prepared, lower, upper, rest_clipped)
@@ -398,6 +415,7 @@ def import_trials(params: ImportParams) -> ImportResult:
     # prepared_q: (report, q of the movement (F', J), rate) per trial that got this far
     qs, durations, rows = [], [], []
     for r, q, rate in prepared_q:
+        q = on_rest_branch(q, np.asarray(robot.rest), robot.continuous)
         duration = (q.shape[0] - 1) / rate
         r.duration_s = duration
         if duration < params.min_duration:
@@ -435,8 +453,11 @@ def import_trials(params: ImportParams) -> ImportResult:
     return ImportResult(db, meta, reports, timing)
 
 
-def _prepare_markers(params, model, kp, rest_points, files, reports) -> list[_Prepared]:
-    """Read, calibrate, gap-fill, filter, build key points, scale and segment every trial."""
+def _prepare_markers(params, model, kp, rest_points, base_z, files, reports) -> list[_Prepared]:
+    """Read, calibrate, gap-fill, filter, build key points, scale and segment every trial.
+
+    base_z: None, or the robot's base height [m] above which the hand targets are lifted.
+    """
     from evojax_motion.mocap import retarget as rt
 
     cache: dict = {}
@@ -487,29 +508,99 @@ def _prepare_markers(params, model, kp, rest_points, files, reports) -> list[_Pr
             if isinstance(calib, TrialError):
                 raise calib
             needed = mk.needed_markers(d, model, calib)
+            ref_marker = _reference_marker(params.reference, model, d)
+            if ref_marker is not None and ref_marker not in needed:
+                needed.append(ref_marker)
             d, gaps = mk.fill_gaps(d, needed, params.max_gap)
             r.frames_filled, r.frames_trimmed = (
                 gaps.frames_filled,
                 gaps.trimmed_start + gaps.trimmed_end,
             )
+            needed += _filled_heading_markers(d, model, params.max_gap)
             d = d._replace(positions=_filter_needed(d, needed, params.cutoff_hz))
             points = mk.keypoints(d, model, calib)
             up = up_override if up_override is not None else d.up
-            origin, rot = mk.body_frame(points, up, forward)
-            human = np.stack([(points[h] - origin) @ rot.T for h in kp.human], axis=1)
-            if not np.isfinite(human).all():
-                raise TrialError("key points are not finite after gap filling")
-            scaled = rt.scale_to_robot(human, rest_points)
-            seg = rt.segment_movement(
-                human[:, -1], d.rate, params.onset_threshold, params.min_peak_speed
+            human, moving = _body_coordinates(
+                params.reference, model, d, points, kp.human, up, forward, r
             )
+            scaled = rt.scale_to_robot(human, rest_points)
+            targets = scaled.targets
+            if base_z is not None:
+                targets, r.lift_m = rt.lift_above_base(targets, base_z)
+            seg = rt.segment_movement(moving, d.rate, params.onset_threshold, params.min_peak_speed)
+            hand = targets[seg.onset : seg.offset + 1, -1]
+            r.hand_target_box = np.round([hand.min(axis=0), hand.max(axis=0)], 4).tolist()
             r.segment_scale = np.round(scaled.robot_lengths / scaled.human_lengths, 4).tolist()
-            r.onset_s = seg.onset / d.rate
+            r.onset_s = (gaps.trimmed_start + seg.onset) / d.rate
             r.peak_hand_speed = seg.peak_speed
-            out.append(_Prepared(r, scaled.targets, d.rate, seg))
+            out.append(_Prepared(r, targets, d.rate, seg, gaps.trimmed_start))
         except TrialError as e:
             r.reason = str(e)
     return out
+
+
+def _reference_marker(reference: str, model, d: MarkerData) -> str | None:
+    """The marker ``--reference`` names (None: a key point or a built-in reference)."""
+    if reference in REFERENCES or reference in model.keypoints:
+        return None
+    if not d.has(reference):
+        raise TrialError(
+            f"--reference {reference}: no such marker in the trial (expected shoulder, lab, a "
+            f"key point of {sorted(model.keypoints)} or one of its {len(d.names)} markers)"
+        )
+    return reference
+
+
+def _filled_heading_markers(d: MarkerData, model, max_gap: int) -> list[str]:
+    """The model's heading markers, gap-filled in place in ``d``, when every frame of the kept
+    window has them after filling; else none (the body frame then turns with the shoulder line).
+    """
+    if model.heading is None:
+        return []
+    names = [*model.heading[0], *model.heading[1]]
+    if not all(d.has(n) for n in names):
+        return []
+    try:
+        filled, gaps = mk.fill_gaps(d, names, max_gap)
+    except TrialError:
+        return []
+    if gaps.trimmed_start or gaps.trimmed_end:
+        return []
+    idx = [d.column(n) for n in names]
+    d.positions[:, idx] = filled.positions[:, idx]
+    return names
+
+
+def _body_coordinates(
+    reference, model, d, points, humans, up, forward, report
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(human (F, K, 3), hand (F, 3))``: the key points ``humans`` in the body frames of
+    ``--reference`` (origin at the shoulder, or the marker / key point named, in every frame,
+    turned with the trunk's heading; ``lab``: frame 0's body frame in every frame), and the hand
+    relative to the trunk (the heading markers' centre, else the origin) along frame 0's axes,
+    whose speed segments the movement: walking does not move it, and a seated person's trunk
+    barely does, so it keeps the lab's speed profile.
+    """
+    hand = points[humans[-1]]
+    if reference == "lab":
+        origin, heading = None, mk.Heading(None, None, "fixed (--reference lab)")
+    else:
+        heading = mk.heading_direction(d, points, model)
+        if reference == "shoulder":
+            origin = points[next(k for k in mk.KEYPOINT_CHAIN if k in points)]
+        elif reference in points:
+            origin = points[reference]
+        else:
+            origin = d.get(reference)
+    report.heading = heading.source
+    origin, rot = mk.body_frames(points, up, forward, origin, heading.direction)
+    human = np.stack([np.einsum("fij,fj->fi", rot, points[h] - origin) for h in humans], axis=1)
+    bad = ~np.isfinite(human).all(axis=-1)
+    if bad.any():
+        f, k = np.argwhere(bad)[0]
+        raise TrialError(f"key point {humans[k]} is not finite at frame {f} after gap filling")
+    centre = origin if heading.centre is None else heading.centre
+    return human, (hand - centre) @ rot[0].T
 
 
 def _filter_needed(d: MarkerData, needed, cutoff) -> np.ndarray:
@@ -548,9 +639,11 @@ def _solve(params, robot, dyn, kp, settings, prepared, lower, upper, rest):
             on, off = p.segment.onset, p.segment.offset
             q, err = q_all[b, on : off + 1], err_all[b, on : off + 1]
             if not np.isfinite(q).all():
-                r.reason = "IK did not converge (NaN)"
+                f = p.first_frame + on + int(np.argmax(~np.isfinite(q).all(axis=1)))
+                r.reason = f"IK did not converge (NaN) at frame {f} ({f / p.rate:.2f} s)"
                 continue
-            matched = err[:, np.asarray(kp.weights) > 0]  # weight 0: scaling only
+            used = np.flatnonzero(np.asarray(kp.weights) > 0)  # weight 0: scaling only
+            matched = err[:, used]
             r.rms_error_m = float(np.sqrt(np.mean(matched**2)))
             r.max_error_m = float(matched.max())
             r.keypoint_rms_m = {
@@ -560,9 +653,12 @@ def _solve(params, robot, dyn, kp, settings, prepared, lower, upper, rest):
             r.limit_frames = int(lim.any(axis=1).sum())
             r.limit_joints = [j for j, hit in zip(robot.joint_names, lim.any(axis=0)) if hit]
             if r.rms_error_m > params.max_rms:
+                f, k = np.unravel_index(int(np.argmax(matched)), matched.shape)
+                frame = p.first_frame + on + int(f)
                 r.reason = (
-                    f"key-point RMS error {100 * r.rms_error_m:.1f} cm > --max-rms "
-                    f"{100 * params.max_rms:.1f} cm"
+                    f"IK error: key-point RMS {1e3 * r.rms_error_m:.0f} mm > --max-rms "
+                    f"{1e3 * params.max_rms:.0f} mm; largest {1e3 * matched[f, k]:.0f} mm at "
+                    f"frame {frame} ({frame / p.rate:.2f} s, {kp.human[used[k]]})"
                 )
                 continue
             rows.append((r, q, p.rate))
@@ -689,7 +785,7 @@ def add_import_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output database .npz")
     opt("--robot", "shipped robot name or MJCF path")
     opt("--joints", "controlled joints of an MJCF, comma-separated")
-    opt("--site", "end-effector site of an MJCF")
+    opt("--site", "end-effector site (or body) of an MJCF (default: its only site)")
     opt(
         "--keypoints",
         "robot point=human key point, e.g. body:upper_arm=shoulder,"
@@ -697,7 +793,13 @@ def add_import_parser(subparsers) -> argparse.ArgumentParser:
     )
     opt(
         "--weights",
-        "IK weight per key point, e.g. shoulder=0,elbow=0.5 (default: 1; arm6: shoulder=0,elbow=0)",
+        "IK weight per key point, e.g. shoulder=0,elbow=0.5 (default: 1 where the robot's upper "
+        "arm can hang as a person's, else hand=1 and 0 for the others)",
+    )
+    opt(
+        "--reference",
+        "origin of the human key points in every frame: shoulder, lab (frame 0's shoulder, "
+        "fixed in the room), or a marker or key point name (e.g. STRN, thorax)",
     )
     opt(
         "--marker-model",
@@ -775,4 +877,3 @@ def run_import(args) -> int:
         atomic_write_text(Path(params.report), json.dumps(report_dict(result, params), indent=1))
     print(f"written to {out}")
     return EXIT_SKIPPED if result.skipped else EXIT_OK
-

@@ -15,8 +15,11 @@ From it:
    (``markers`` + ``cluster``: the cluster's least-squares rigid motion, Soderkvist & Wedin 1993,
    moves the landmark), or a functional joint centre between two clusters (``between``: the point
    that moves rigidly with both, SCoRE, Ehrig et al. 2006).
-4. `body_frame`: the trial's points in a trunk frame, x forward, y left, z up (the robot's world
-   convention), from the up axis and the right-left shoulder line.
+4. `body_frames`: the trial's points in a frame that moves with the person, x forward, y left,
+   z up (the robot's world convention): its origin is the shoulder (or another reference point) in
+   every frame, its heading that of the trunk (`heading_direction`: two trunk markers, else the
+   right-left shoulder line), turned about the vertical. A person who steps, walks or turns keeps
+   the same arm motion in it.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from evojax_motion.errors import UserError
 
 KEYPOINT_CHAIN = ("shoulder", "elbow", "wrist", "hand")  # proximal to distal: the scaled segments
 LEFT_SHOULDER = "left_shoulder"  # used only for the body frame's lateral axis
+MIN_HEADING = 1e-3  # [m] a horizontal heading vector shorter than this tells no direction
 MIN_CLUSTER_MARKERS = 3  # a rigid motion needs three non-collinear points
 SCORE_RCOND = 1e-3  # singular values below this fraction of the largest: direction undetermined
 
@@ -217,12 +221,18 @@ class KeyPointDef:
 @dataclass(frozen=True)
 class MarkerModel:
     """Key-point definitions of one marker set. ``up``/``forward``: axes of the recording
-    (``"+z"``...); ``forward`` None: from the right-left shoulder line (needs ``left_shoulder``)."""
+    (``"+z"``...); ``forward`` None: from the right-left shoulder line (needs ``left_shoulder``).
+
+    heading: two groups of markers fixed to the trunk (or pelvis); the horizontal direction from
+    the first group's mean to the second's turns with the person and turns the body frame in
+    every frame (`heading_direction`). None, or markers missing from a trial: the shoulder line.
+    """
 
     name: str
     keypoints: Mapping[str, KeyPointDef]
     up: str | None = None  # None: the reader's convention (MarkerData.up)
     forward: str | None = None
+    heading: tuple[tuple[str, ...], tuple[str, ...]] | None = None
 
     def required(self) -> tuple[str, ...]:
         return tuple(k for k in KEYPOINT_CHAIN if k in self.keypoints)
@@ -246,6 +256,8 @@ UE_ADL = MarkerModel(
         "hand": KeyPointDef(markers=("RFB",), cluster=_cluster("RHAN")),
         LEFT_SHOULDER: KeyPointDef(markers=_cluster("LSHO")),
     },
+    # the trunk's heading: left acromion to sternum (the right shoulder moves with the scapula)
+    heading=(_cluster("LSHO"), ("STRN",)),
 )
 
 # Vicon Plug-in Gait upper body (right arm).
@@ -258,6 +270,7 @@ PLUG_IN_GAIT = MarkerModel(
         "hand": KeyPointDef(markers=("RFIN",)),
         LEFT_SHOULDER: KeyPointDef(markers=("LSHO",)),
     },
+    heading=(("C7",), ("CLAV",)),
 )
 
 # BVH as converted from the CMU database (joint origins; the palm is between wrist and knuckles).
@@ -270,6 +283,7 @@ CMU_BVH = MarkerModel(
         "hand": KeyPointDef(markers=("RightHand", "RightFingerBase")),
         LEFT_SHOULDER: KeyPointDef(markers=("LeftArm",)),
     },
+    heading=(("LeftUpLeg",), ("RightUpLeg",)),  # the hip joints: the pelvis's heading
 )
 
 # ASF/AMC (CMU, HDM05): a bone's point is its distal end (rclavicle ends at the shoulder).
@@ -282,6 +296,7 @@ CMU_ASF = MarkerModel(
         "hand": KeyPointDef(markers=("rradius", "rhand")),
         LEFT_SHOULDER: KeyPointDef(markers=("lclavicle",)),
     },
+    heading=(("lhipjoint",), ("rhipjoint",)),  # the hip joint centres: the pelvis's heading
 )
 
 MARKER_MODELS: dict[str, MarkerModel] = {
@@ -300,6 +315,7 @@ def marker_model_from_dict(data: Mapping, where: str) -> MarkerModel:
 
     up: +z                      # optional
     forward: +y                 # optional; else the right-left shoulder line is used
+    heading: [[C7], [CLAV]]     # optional: two trunk marker groups (the trunk's heading)
     keypoints:
       shoulder: {between: [[RSHO1, RSHO2, RSHO3], [RUAR1, RUAR2, RUAR3]]}
       elbow: {markers: [RLEP, RMEP], cluster: [RUAR1, RUAR2, RUAR3]}
@@ -309,9 +325,11 @@ def marker_model_from_dict(data: Mapping, where: str) -> MarkerModel:
     """
     if not isinstance(data, Mapping):
         raise UserError(f"{where}: expected a mapping with a 'keypoints' section")
-    unknown = set(data) - {"name", "up", "forward", "keypoints"}
+    unknown = set(data) - {"name", "up", "forward", "heading", "keypoints"}
     if unknown:
-        raise UserError(f"{where}: unknown keys {sorted(unknown)}; expected up, forward, keypoints")
+        raise UserError(
+            f"{where}: unknown keys {sorted(unknown)}; expected up, forward, heading, keypoints"
+        )
     kps = data.get("keypoints")
     if not isinstance(kps, Mapping) or not kps:
         raise UserError(f"{where}: keypoints: expected a mapping of key point definitions")
@@ -354,8 +372,21 @@ def marker_model_from_dict(data: Mapping, where: str) -> MarkerModel:
             axis_vector(val, f"{where}: {key}")
     if forward is None and LEFT_SHOULDER not in defs:
         raise UserError(f"{where}: give 'forward' or a 'left_shoulder' key point (body frame)")
+    heading = None
+    if data.get("heading") is not None:
+        h = data["heading"]
+        if not isinstance(h, (list, tuple)) or len(h) != 2:
+            raise UserError(
+                f"{where}: heading: expected two lists of trunk markers, e.g. [[C7], [CLAV]], "
+                f"got {h!r}"
+            )
+        heading = (_str_tuple(h[0], f"{where}: heading"), _str_tuple(h[1], f"{where}: heading"))
     return MarkerModel(
-        name=str(data.get("name", Path(where).stem)), keypoints=defs, up=up, forward=forward
+        name=str(data.get("name", Path(where).stem)),
+        keypoints=defs,
+        up=up,
+        forward=forward,
+        heading=heading,
     )
 
 
@@ -543,8 +574,8 @@ def needed_markers(data: MarkerData, model: MarkerModel, calib: Calibration | No
 def body_frame(
     points: Mapping[str, np.ndarray], up: np.ndarray, forward: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Trunk frame of a trial: ``(origin (3,), rot (3, 3))``; ``rot @ (p - origin)`` gives
-    coordinates x forward, y left, z up. Origin: the shoulder (or first key point) in frame 0."""
+    """Trunk frame of a trial's first frame: ``(origin (3,), rot (3, 3))``; ``rot @ (p - origin)``
+    gives coordinates x forward, y left, z up. Origin: the shoulder (or first key point)."""
     first = next(k for k in KEYPOINT_CHAIN if k in points)
     origin = points[first][0]
     up = up / np.linalg.norm(up)
@@ -555,8 +586,94 @@ def body_frame(
     right = right - up * (right @ up)
     norm = np.linalg.norm(right)
     if not math.isfinite(norm) or norm < 1e-6:
-        raise TrialError("cannot tell left from right: the shoulder line is vertical")
+        raise TrialError(
+            f"cannot tell left from right: the shoulder line's horizontal part is "
+            f"{1e3 * norm:.2f} mm in the first frame"
+        )
     right /= norm
     fwd = np.cross(up, right)
     left = -right
     return origin, np.stack([fwd, left, up])
+
+
+class Heading(NamedTuple):
+    """What turns a trial's body frame (`heading_direction`).
+
+    direction: (F, 3) a vector that turns with the trunk, or None (the frame does not turn).
+    centre: (F, 3) the mean of the trunk markers it comes from, or None (from the shoulders).
+    source: in words, for the report.
+    """
+
+    direction: np.ndarray | None
+    centre: np.ndarray | None
+    source: str
+
+
+def heading_direction(
+    data: MarkerData, points: Mapping[str, np.ndarray], model: MarkerModel
+) -> Heading:
+    """The trunk's heading: the model's `MarkerModel.heading` markers when the trial has them in
+    every frame (gap-filled as the key points' markers are); else the shoulder line (shoulder -
+    left shoulder) when the model has a left shoulder; else none (the recording's ``forward``
+    axis, fixed).
+    """
+    if model.heading is not None:
+        names = [*model.heading[0], *model.heading[1]]
+        if all(n in data.names for n in names):
+            a = np.mean([data.get(n) for n in model.heading[0]], axis=0)
+            b = np.mean([data.get(n) for n in model.heading[1]], axis=0)
+            if np.isfinite(b - a).all():
+                centre = np.mean([data.get(n) for n in names], axis=0)
+                source = f"markers {'+'.join(model.heading[0])} -> {'+'.join(model.heading[1])}"
+                return Heading(b - a, centre, source)
+    if model.forward is None and LEFT_SHOULDER in points:
+        first = next(k for k in KEYPOINT_CHAIN if k in points)
+        return Heading(points[first] - points[LEFT_SHOULDER], None, "shoulder line")
+    return Heading(None, None, "fixed")
+
+
+def heading_turn(direction: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """``(F,)`` [rad] how far ``direction (F, 3)`` has turned about ``up`` since frame 0
+    (counter-clockwise seen from above positive), unwrapped. Its tilt out of the horizontal does
+    not count. Raises `TrialError` when it points (nearly) straight up in some frame."""
+    up = up / np.linalg.norm(up)
+    flat = direction - np.outer(direction @ up, up)
+    norm = np.linalg.norm(flat, axis=-1)
+    if not (norm > MIN_HEADING).all():
+        frame = int(np.argmin(np.where(np.isfinite(norm), norm, -1.0)))
+        raise TrialError(
+            f"cannot tell the trunk's heading at frame {frame}: its horizontal part is "
+            f"{1e3 * norm[frame]:.1f} mm < {1e3 * MIN_HEADING:.0f} mm"
+        )
+    d0 = flat[0]
+    sin = np.cross(d0, flat) @ up
+    cos = flat @ d0
+    return np.unwrap(np.arctan2(sin, cos))
+
+
+def body_frames(
+    points: Mapping[str, np.ndarray],
+    up: np.ndarray,
+    forward: np.ndarray | None,
+    origin: np.ndarray | None = None,
+    heading: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Body frames of every frame of a trial: ``(origin (F, 3), rot (F, 3, 3))``; ``rot[t] @
+    (p[t] - origin[t])`` gives coordinates x forward, y left, z up that move with the person.
+
+    Frame 0 is `body_frame`; frame ``t`` is it turned about ``up`` by `heading_turn` of
+    ``heading (F, 3)`` (None: not turned). origin: ``(F, 3)`` the reference point in every frame
+    (None: frame 0's shoulder in every frame, a frame fixed in the lab).
+    """
+    o0, rot0 = body_frame(points, up, forward)
+    first = next(iter(points.values()))
+    n = first.shape[0]
+    origin = np.broadcast_to(o0, (n, 3)) if origin is None else np.asarray(origin)
+    if heading is None:
+        return origin, np.broadcast_to(rot0, (n, 3, 3))
+    turn = heading_turn(heading, up)
+    u = up / np.linalg.norm(up)
+    k = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    s, c = np.sin(turn)[:, None, None], np.cos(turn)[:, None, None]
+    turned = np.eye(3) + s * k + (1.0 - c) * (k @ k)  # (F, 3, 3) Rodrigues: turn about up
+    return origin, rot0 @ np.swapaxes(turned, -1, -2)

@@ -5,10 +5,18 @@ optimisation-based IK from motion-capture markers. Here, for a robot with key po
 its end-effector site, `RobotKeyPoints`) matched to human key points (shoulder, elbow, wrist,
 hand):
 
-1. Scaling (`scale_to_robot`): the human chain is rebuilt with the robot's segment lengths,
-   keeping every segment's direction, ``x_k = x_(k-1) + L_robot,k * unit(h_k - h_(k-1))``; the root
-   key point (shoulder) starts at the robot's and moves by the human's displacement times the
-   ratio of arm lengths. Human segment lengths are medians over the trial's frames.
+0. Key points and weights (`robot_keypoints`) come from the robot's kinematic chain when not
+   given (`guess_keypoints`): the shoulder is the first joint after a vertical base yaw, the
+   elbow the first bending joint after it, the wrist the last one, the hand the end effector.
+   `default_weights`: every key point when the robot's upper arm can hang below its shoulder as
+   a person's does (an anthropomorphic arm), else the hand only (the others still set the scale).
+1. Scaling (`scale_to_robot`): the human key points, relative to the person's shoulder in a frame
+   that moves with the person (`markers.body_frames`), are rebuilt with the robot's segment
+   lengths keeping every segment's direction, ``x_k = x_(k-1) + L_robot,k * unit(h_k - h_(k-1))``,
+   from the robot's shoulder; so the human arm's reach becomes the robot's. With another reference
+   point, the shoulder moves by the human's displacement times the ratio of arm lengths. Human
+   segment lengths are medians over the trial's frames. `lift_above_base`: when the shoulder is a
+   reference only (weight 0), the targets are raised until the hand stays above the robot's base.
 2. IK (`solve_keypoint_ik`): every frame minimises
 
        sum_k w_k^2 |p_k(q) - x_k|^2 + s |q - q_prev|^2 + r |q - q_rest|^2,  lower <= q <= upper
@@ -43,29 +51,13 @@ from evojax_motion.timegrid import make_time_grid
 LIMIT_EPS = 1e-6  # [rad] a joint this close to a limit counts as at the limit
 MU_INIT, MU_DOWN, MU_UP, MU_MIN = 1e-3, 0.3, 10.0, 1e-9  # Levenberg-Marquardt damping schedule
 
-# robot key point (``body:NAME`` / ``site:NAME``) -> human key point, per shipped robot
-DEFAULT_KEYPOINT_MAPS: dict[str, dict[str, str]] = {
-    "mahru_arm": {
-        "body:upper_arm": "shoulder",
-        "body:forearm": "elbow",
-        "body:hand": "wrist",
-        "site:hand": "hand",
-    },
-    "arm6": {
-        "body:upper_link": "shoulder",
-        "body:fore_link": "elbow",
-        "body:wrist_head": "wrist",
-        "site:tool": "hand",
-    },
-}
-
-
-# IK weight per human key point, per shipped robot (others: 1). arm6 is not anthropomorphic (its
-# upper link points up, elbow above the hand), so it follows the human wrist and hand only; its
-# shoulder and elbow still set the scale of the chain.
-DEFAULT_KEYPOINT_WEIGHTS: dict[str, dict[str, float]] = {
-    "arm6": {"shoulder": 0.0, "elbow": 0.0},
-}
+# guess_keypoints: a joint axis within this angle of the vertical is a base yaw; one within
+# ROLL_DEG of its link a roll (not a bend); anchors closer than SAME_POINT_M are one point
+VERTICAL_DEG, ROLL_DEG, SAME_POINT_M = 30.0, 60.0, 1e-3
+# default_weights: the upper arm "can hang" when some posture points it within HANG_DEG of
+# straight down; HANG_SAMPLES postures are tried (and the rest posture)
+HANG_DEG, HANG_SAMPLES = 30.0, 4096
+BASE_CLEARANCE = 0.05  # [m] lift_above_base keeps the hand targets this far above the base
 
 
 class RobotKeyPoints(NamedTuple):
@@ -87,20 +79,14 @@ def robot_keypoints(
 ) -> RobotKeyPoints:
     """Resolve a key-point map (robot point -> human key point) and weights for ``robot``.
 
-    mapping None: `DEFAULT_KEYPOINT_MAPS` for a shipped robot, else a guess from joint names
-    (the body of the first controlled joint named ``*shoulder*``, ``*elbow*``, ``*wrist*``; the
-    end-effector site for the hand). Robot points: ``site:NAME`` (only the robot's end-effector
-    site), ``body:NAME``, or a bare name (the site if it is the end-effector site, else a body).
-    weights: human key point -> IK weight, over `DEFAULT_KEYPOINT_WEIGHTS` (default 1).
+    mapping None: `guess_keypoints` (from the kinematic chain). Robot points: ``site:NAME`` (only
+    the robot's end-effector site), ``body:NAME``, or a bare name (the site if it is the
+    end-effector site, else a body). weights: human key point -> IK weight, over
+    `default_weights` of the map.
     """
     m = robot.mj_model
     if mapping is None:
-        mapping = DEFAULT_KEYPOINT_MAPS.get(robot.name)
-        if mapping is None or (
-            robot.name in DEFAULT_KEYPOINT_MAPS
-            and f"site:{robot.site_name}" not in DEFAULT_KEYPOINT_MAPS[robot.name]
-        ):
-            mapping = _guess_keypoints(robot)
+        mapping = guess_keypoints(robot)
     by_human = {}
     for ref, human in mapping.items():
         if human not in KEYPOINT_CHAIN:
@@ -140,7 +126,7 @@ def robot_keypoints(
         humans.append(human)
         refs.append(f"body:{name}")
         ids.append(int(b))
-    w = dict(DEFAULT_KEYPOINT_WEIGHTS.get(robot.name, {}))
+    w = default_weights(robot, tuple(humans), tuple(ids))
     for key, value in (weights or {}).items():
         if key not in KEYPOINT_CHAIN or not (value >= 0 and np.isfinite(value)):
             raise UserError(
@@ -154,18 +140,99 @@ def robot_keypoints(
     return RobotKeyPoints(tuple(humans), tuple(refs), tuple(ids), kw)
 
 
-def _guess_keypoints(robot) -> dict[str, str]:
+def _rest_kinematics(robot, q=None) -> mujoco.MjData:
+    """C MuJoCo kinematics of ``robot`` at ``q`` (default: the rest posture)."""
     m = robot.mj_model
-    out = {}
-    for word in ("shoulder", "elbow", "wrist"):
-        for jname, jid in zip(robot.joint_names, robot.joint_ids):
-            if word in jname.lower():
-                body = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.jnt_bodyid[jid]))
-                if f"body:{body}" not in out:
-                    out[f"body:{body}"] = word
-                break
+    d = mujoco.MjData(m)
+    d.qpos[robot.qpos_adr] = robot.rest if q is None else q
+    mujoco.mj_kinematics(m, d)
+    return d
+
+
+def guess_keypoints(robot) -> dict[str, str]:
+    """Robot key points from the kinematic chain of the controlled hinges (at the rest posture).
+
+    shoulder: the body of the first hinge whose axis is more than `VERTICAL_DEG` from the
+    vertical (a base yaw before it turns the whole arm), or of the first hinge. elbow and wrist:
+    the bodies of the first and the last *bending* hinge after it, whose axis is more than
+    `ROLL_DEG` from the link that leads to it (rolls about a link move no point of the chain);
+    hinges at the same point as the previous one count as that point. hand: the end-effector
+    site. Names do not matter: e.g. mahru_arm's upper_arm, forearm, hand and Kinova Gen3's
+    joint_2, joint_4 and joint_6 bodies.
+    """
+    m = robot.mj_model
+    d = _rest_kinematics(robot)
+    hinges = [j for j in robot.joint_ids if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_HINGE)]
+    out: dict[str, str] = {}
+    if hinges:
+
+        def body(j: int) -> str:
+            return f"body:{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.jnt_bodyid[j]))}"
+
+        vertical = np.cos(np.deg2rad(VERTICAL_DEG))
+        first = next((k for k, j in enumerate(hinges) if abs(d.xaxis[j][2]) < vertical), 0)
+        out[body(hinges[first])] = "shoulder"
+        prev, link = d.xanchor[hinges[first]].copy(), None
+        bends: list[int] = []
+        for j in hinges[first + 1 :]:
+            v = d.xanchor[j] - prev
+            if np.linalg.norm(v) > SAME_POINT_M:
+                link, prev = v / np.linalg.norm(v), d.xanchor[j].copy()
+            elif link is None:
+                continue  # at the shoulder: one of its axes
+            elif bends and np.linalg.norm(d.xanchor[j] - d.xanchor[bends[-1]]) <= SAME_POINT_M:
+                continue  # at the last bend's point
+            if abs(d.xaxis[j] @ link) < np.cos(np.deg2rad(ROLL_DEG)):
+                bends.append(j)
+        bodies = [body(j) for j in bends if body(j) not in out]
+        if bodies:
+            out[bodies[0]] = "elbow"
+        if len(bodies) > 1 and bodies[-1] != bodies[0]:
+            out[bodies[-1]] = "wrist"
     out[f"site:{robot.site_name}"] = "hand"
     return out
+
+
+def upper_arm_can_hang(robot, shoulder_body: int, elbow_body: int) -> bool:
+    """Whether some posture inside the limits points the robot's shoulder -> elbow key points
+    within `HANG_DEG` of straight down, as a person's relaxed arm (the rest posture and
+    `HANG_SAMPLES` postures drawn from `Robot.sample_postures`, fixed seed)."""
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    postures = np.concatenate([robot.rest[None], robot.sample_postures(rng, HANG_SAMPLES)])
+    cos_hang = np.cos(np.deg2rad(HANG_DEG))
+    for q in postures:
+        d.qpos[robot.qpos_adr] = q
+        mujoco.mj_kinematics(m, d)
+        arm = d.xpos[elbow_body] - d.xpos[shoulder_body]
+        norm = np.linalg.norm(arm)
+        if norm > SAME_POINT_M and -arm[2] / norm >= cos_hang:
+            return True
+    return False
+
+
+def default_weights(robot, humans: Sequence[str], body_ids: Sequence[int]) -> dict[str, float]:
+    """IK weight per human key point when ``--weights`` does not say: 1 for every key point of an
+    arm whose upper arm can hang (`upper_arm_can_hang`: shoulder, elbow and the rest can take a
+    person's postures), else 1 for the hand and 0 for the others (a table-top arm's shoulder
+    cannot follow a person's: its elbow stays up; those points still set the scale).
+
+    humans: (K,) human key points; body_ids: (K,) their robot bodies (-1: the site).
+    """
+    ids = dict(zip(humans, body_ids))
+    shoulder, elbow = ids.get("shoulder", -1), ids.get("elbow", -1)
+    if shoulder >= 0 and elbow >= 0 and upper_arm_can_hang(robot, shoulder, elbow):
+        return {h: 1.0 for h in humans}
+    return {h: (1.0 if h == "hand" else 0.0) for h in humans}
+
+
+def base_height(robot) -> float:
+    """[m] world height of the robot's base: the origin of the outermost body of its chain (the
+    body attached to the world that carries the first controlled joint)."""
+    m = robot.mj_model
+    root = int(m.body_rootid[int(m.jnt_bodyid[robot.joint_ids[0]])])
+    return float(_rest_kinematics(robot).xpos[root][2])
 
 
 def parse_pairs(text: str, flag: str) -> dict[str, str]:
@@ -218,15 +285,22 @@ def robot_segment_lengths(rest_points: np.ndarray) -> np.ndarray:
 
 
 def scale_to_robot(human: np.ndarray, rest_points: np.ndarray) -> Scaled:
-    """Human key points ``(F, K, 3)`` in the body frame (x forward, y left, z up; origin at the
-    first key point in frame 0) -> robot targets ``(F, K, 3)`` in the robot's world frame.
+    """Human key points ``(F, K, 3)`` in a body frame (x forward, y left, z up; origin at the
+    reference point, the shoulder by default) -> robot targets ``(F, K, 3)`` in the robot's world
+    frame.
 
-    rest_points: ``(K, 3)`` robot key points at its rest posture (its root anchors the chain).
+    rest_points: ``(K, 3)`` robot key points at its rest posture (its root anchors the chain: the
+    human's root key point in frame 0 goes there and moves by its displacement times the ratio
+    of arm lengths, not at all when it is the frame's origin).
     """
     seg = np.diff(human, axis=1)  # (F, K-1, 3)
     length = np.linalg.norm(seg, axis=-1)
     if not (length > 1e-6).all():
-        raise TrialError("two key points coincide: cannot tell a segment's direction")
+        f, k = np.argwhere(~(length > 1e-6))[0]
+        raise TrialError(
+            f"key points {k} and {k + 1} of the chain coincide at frame {f} "
+            f"({1e3 * length[f, k]:.2f} mm apart): cannot tell the segment's direction"
+        )
     h_len = np.median(length, axis=0)
     r_len = robot_segment_lengths(rest_points)
     ratio = r_len.sum() / h_len.sum()
@@ -234,6 +308,16 @@ def scale_to_robot(human: np.ndarray, rest_points: np.ndarray) -> Scaled:
     steps = r_len[None, :, None] * seg / length[..., None]
     targets = np.concatenate([root[:, None], root[:, None] + np.cumsum(steps, axis=1)], axis=1)
     return Scaled(targets, h_len, r_len)
+
+
+def lift_above_base(
+    targets: np.ndarray, base_z: float, clearance: float = BASE_CLEARANCE
+) -> tuple[np.ndarray, float]:
+    """``(targets + lift z, lift)``: targets ``(F, K, 3)`` raised by the least ``lift >= 0`` [m]
+    that puts the hand (the last key point) at least ``clearance`` above ``base_z`` in every
+    frame. A person's hand works below the shoulder; a table-top arm's works above its base."""
+    lift = max(0.0, float(base_z + clearance - targets[:, -1, 2].min()))
+    return targets + np.array([0.0, 0.0, lift]), lift
 
 
 # ------------------------------------------------------------------------------------------ IK
