@@ -7,7 +7,9 @@ trajectories with an IK solver (sec. 2). No such recording ships with this proje
 
 - catch points: a spherical-shell sector around the shoulder (`CatchRegion`, centred on a named
   body of the robot at its rest posture), filled with uniform volume density by a Halton sequence
-  (stratified, low-discrepancy) under a random shift drawn from the key;
+  (stratified, low-discrepancy) under a random shift drawn from the key. The shipped robots have
+  a preset sector (`ROBOT_PRESETS`); for any other arm it is derived from the reachable workspace
+  (`derive_region`: the hand over `WORKSPACE_SAMPLES` postures drawn within the joint limits);
 - hand path, by progress u in [0, 1]: ``(1 - arc_blend)`` straight line (Morasso 1981; Flash &
   Hogan 1985) + ``arc_blend`` shoulder-centred arc (direction slerped, distance interpolated; from
   a hanging arm, straight lines pass close to the shoulder and need a deep, fast elbow flexion and
@@ -22,10 +24,12 @@ trajectories with an IK solver (sec. 2). No such recording ships with this proje
   hand's travel, W the target (catch) width; stretched where a joint would exceed
   ``max_speed_fraction`` of its velocity limit;
 - posture: a hand position leaves the arm redundant (7 joints, 3 constraints); the IK resolves it
-  toward a comfortable final posture (the robot's preset: rest for waist and wrist, shoulder
-  forward, elbow moderately flexed) plus per-trial Gaussian noise, whose null-space part is the
-  trial-to-trial elbow swivel and trunk/wrist variability of human reaching (Kang, He & Tillery
-  2005; Lacquaniti & Soechting 1982). The preference moves from rest with the hand's progress;
+  toward a comfortable final posture (mahru_arm's preset: rest for waist and wrist, shoulder
+  forward, elbow moderately flexed; any other arm: its rest posture moved into the central half
+  of each joint's range, `derive_comfort`, after the joint-range criterion of Liegeois 1977) plus
+  per-trial Gaussian noise, whose null-space part is the trial-to-trial elbow swivel and
+  trunk/wrist variability of human reaching (Kang, He & Tillery 2005; Lacquaniti & Soechting
+  1982). The preference moves from rest with the hand's progress;
 - joint trajectories: `ik.solve_ik_trajectory` at T evenly spaced values of u (warm-started scan,
   limits shrunk by ``limit_margin_deg``), then a C2 cubic spline in u evaluated at the progress of
   the T time samples; cost ``0.5 int |tau|^2 dt`` (eq. 5, `objective.CostProgram`).
@@ -33,7 +37,10 @@ trajectories with an IK solver (sec. 2). No such recording ships with this proje
 Trials that miss their path or catch point by more than ``catch_tolerance`` or touch the shrunk
 limits (a clamped joint has a kink) are rejected. Each round draws ``oversample * count``
 candidates in one jit (fixed shapes); further rounds continue the Halton sequence until ``count``
-trials pass. Same key -> bit-identical output.
+trials pass; when they do not, the error counts the candidates by cause (limits touched, by joint;
+catch points missed, with figures and how many lie beyond the sampled reach). Same key ->
+bit-identical output. Continuous joints (no range) are stored on the rest branch
+(`angles.on_rest_branch`).
 """
 
 from __future__ import annotations
@@ -50,6 +57,7 @@ import mujoco
 import numpy as np
 
 from evojax_motion import compile_cache
+from evojax_motion.angles import on_rest_branch
 from evojax_motion.database import Database, human_mask, make_database
 from evojax_motion.dynamics import Dynamics
 from evojax_motion.errors import UserError
@@ -82,6 +90,8 @@ CITATIONS = (
     "J. Neurosci. 5(9):2318-2330 (curved vertical paths, invariant bell-shaped speed)",
     "Lacquaniti & Soechting (1982), Coordination of arm and wrist motion during a reaching task, "
     "J. Neurosci. 2(4):399-408 (arm posture in reaching)",
+    "Liegeois (1977), Automatic supervisory control of the configuration and behavior of "
+    "multibody mechanisms, IEEE Trans. SMC 7(12):868-871 (preferring the middle of joint ranges)",
 )
 
 
@@ -92,7 +102,8 @@ class CatchRegion:
     frame: body whose origin, at the rest posture, is the centre (e.g. the shoulder); axes are the
       world axes (x forward, y left, z up for the shipped robots).
     radius: (min, max) distance from the centre [m].
-    azimuth_deg: (min, max) angle about +z from +x [deg]; positive toward +y (left).
+    azimuth_deg: (min, max) angle about +z from +x [deg]; positive toward +y (left); within
+      [-360, 360] and at most one turn wide (a sector may cross +-180).
     elevation_deg: (min, max) angle above the horizontal plane [deg].
     """
 
@@ -103,24 +114,26 @@ class CatchRegion:
 
     def __post_init__(self):
         _check_range("radius", self.radius, 0.0, math.inf, open_low=True)
-        _check_range("azimuth_deg", self.azimuth_deg, -180.0, 180.0)
+        _check_range("azimuth_deg", self.azimuth_deg, -360.0, 360.0, max_width=360.0)
         _check_range("elevation_deg", self.elevation_deg, -90.0, 90.0)
         if not isinstance(self.frame, str) or not self.frame:
             raise ValueError(f"frame: expected a body name, got {self.frame!r}")
 
 
-def _check_range(name, value, lo, hi, open_low=False):
+def _check_range(name, value, lo, hi, open_low=False, max_width=math.inf):
     ok = (
         isinstance(value, tuple)
         and len(value) == 2
         and all(isinstance(v, (int, float)) and math.isfinite(v) for v in value)
         and (value[0] > lo if open_low else value[0] >= lo)
         and value[0] < value[1] <= hi
+        and value[1] - value[0] <= max_width
     )
     if not ok:
+        width = f" and max - min <= {max_width:g}" if math.isfinite(max_width) else ""
         raise ValueError(
             f"{name}: expected [min, max] with {lo:g} {'<' if open_low else '<='} min < max <= "
-            f"{hi:g}, got {value!r}"
+            f"{hi:g}{width}, got {value!r}"
         )
 
 
@@ -170,6 +183,20 @@ ROBOT_PRESETS: dict[str, RobotPreset] = {
 DEFAULT_POSTURE_STD_DEG = 5.0  # for joints a preset does not name
 DEFAULT_POSTURE_WEIGHT = 0.25
 
+# Defaults for a robot without a preset, derived from its model (`derive_region`,
+# `derive_comfort`, `derive_posture_std`).
+WORKSPACE_SAMPLES = 4096  # postures drawn within the joint limits for the reachable workspace
+WORKSPACE_SEED = 0  # their draw: the derived region is a property of the robot, not of demos.seed
+SHOULDER_SPREAD = 0.1  # the shoulder: the deepest body that moves less than this x hand extent
+REGION_RADIUS_FRACTION = (0.5, 0.75)  # catch radii as fractions of the reach from the shoulder
+REGION_AZIMUTH_HALF_DEG = 40.0  # the sector spans +-this about the front
+REGION_ELEVATION_DEG = (-20.0, 30.0)
+FRONT_MIN_FRACTION = 0.1  # a rest hand this far (x reach) out horizontally defines the front
+COMFORT_CENTRAL_FRACTION = 0.5  # the comfortable posture lies in this central part of a range
+POSTURE_STD_FRACTION = 0.04  # per-trial preference noise: this fraction of a joint's range...
+POSTURE_STD_MAX_DEG = 8.0  # ...at most this; a continuous joint gets the most
+MIN_WORKSPACE_EXTENT = 1e-3  # [m] an end effector that moves less has an empty workspace
+
 
 # Numeric fields of DemoSettings: (lowest, highest) allowed, both inclusive.
 _NUMBER_RANGES = {
@@ -191,28 +218,58 @@ _INT_MINIMA = {"count": 1, "samples": 8, "ik_iters": 1, "max_rounds": 1}
 
 @dataclass(frozen=True)
 class DemoSettings:
-    """How the synthetic demonstrations are drawn (see the module docstring for the models).
+    """How the synthetic demonstrations are drawn (the config's ``demos`` section; the models in
+    the module docstring). Every key has a default that works for any arm: the four robot-specific
+    ones (``region``, ``comfort_joints``/``comfort_deg``, ``posture_std_deg``,
+    ``posture_weight``) come from the robot's preset for the shipped robots (`ROBOT_PRESETS`:
+    mahru_arm, arm6) and are derived from the model for any other (`derive_defaults`).
 
-    count, samples: number of demonstrations and samples T per trajectory.
-    seed: the key the CLI builds (``generate_demonstrations`` takes the key itself).
-    region: catch region; None = the robot's preset (`ROBOT_PRESETS`).
-    fitts_a [s], fitts_b [s/bit], target_width [m]: Fitts' law ``D = a + b log2(2 d / W)``.
-    duration_noise: std of log(D) around Fitts' law.
-    asymmetry_mean, asymmetry_std: time-warp parameter a (speed peak earlier for a > 0).
-    curvature_std: std of the random bend's largest deviation, as a fraction of the path length.
-    arc_blend: hand path = (1 - arc_blend) straight line + arc_blend shoulder-centred arc.
-    max_speed_fraction: durations are stretched where a joint would exceed this fraction of its
-      velocity limit.
-    comfort_joints, comfort_deg: preferred final angles [deg] of the named joints (others: rest);
-      None = the robot's preset.
-    posture_std_deg: per-trial preference noise [deg], one value for all joints or one per joint;
-      None = the robot's preset.
-    posture_weight: null-space weights in (0, 1] of the preference (IK ``w_pref``), one value or
-      one per joint; a heavier joint stays nearer its preferred angle. None = the robot's preset.
-    limit_margin_deg: the IK keeps every joint this far inside its limits.
-    catch_tolerance: largest hand error along the path and at the catch point [m].
-    ik_iters: IK iterations per path node. oversample: candidates per round / count.
-    max_rounds: candidate rounds before giving up.
+    - ``count``: demonstrations in the database (default 311, the paper's sec. 4.1).
+    - ``samples``: T, samples per trajectory on normalised time (default 100).
+    - ``seed``: the PRNG key the CLI builds (``generate_demonstrations`` takes the key itself;
+      default 0). Same key, same settings -> bit-identical database.
+    - ``region``: where the catch points lie, a `CatchRegion` ``{frame, radius [m],
+      azimuth_deg, elevation_deg}``: a spherical-shell sector around the origin of body
+      ``frame`` at the rest posture, world axes. Default (null): the preset's; else derived
+      from the reachable workspace (`derive_region`): the hand over `WORKSPACE_SAMPLES`
+      postures drawn uniformly within the joint limits (continuous joints: one turn about
+      rest); ``frame`` = the shoulder, the deepest body of the arm's chain that moves less than
+      `SHOULDER_SPREAD` of the hand's extent; ``radius`` = `REGION_RADIUS_FRACTION` (0.5-0.75)
+      of the largest sampled distance of the hand from it (comfortable reach, away from the
+      base); ``azimuth_deg`` = +-`REGION_AZIMUTH_HALF_DEG` (40) about the front (the rest
+      hand's horizontal direction from the shoulder, else +x); ``elevation_deg`` =
+      `REGION_ELEVATION_DEG` (-20..30).
+    - ``fitts_a`` [s], ``fitts_b`` [s/bit], ``target_width`` [m]: Fitts' law ``D = a + b
+      log2(2 d / W)`` for a hand travel d (defaults 0.25 s, 0.10 s/bit, 0.08 m).
+    - ``duration_noise``: std of log(D) around Fitts' law (default 0.08).
+    - ``asymmetry_mean``, ``asymmetry_std``: time-warp parameter a, speed peak earlier for
+      a > 0 (defaults 0.10, 0.05).
+    - ``curvature_std``: std of the random bend's largest deviation, a fraction of the path
+      length (default 0.03).
+    - ``arc_blend``: hand path = (1 - arc_blend) straight line + arc_blend shoulder-centred arc
+      (default 0.8).
+    - ``max_speed_fraction``: durations are stretched where a joint would exceed this fraction
+      of its velocity limit (default 0.9; joints without a limit never stretch).
+    - ``comfort_joints``, ``comfort_deg``: preferred final angles [deg] of the named joints, the
+      other joints at rest (set both or neither). Default (null): the preset's; else derived
+      (`derive_comfort`): the rest posture moved into the central half
+      (`COMFORT_CENTRAL_FRACTION`) of each joint's range; continuous joints at rest.
+    - ``posture_std_deg``: std [deg] of the per-trial Gaussian noise on the preferred final
+      posture, one value for all joints or one per joint. Default (null): the preset's (5 deg
+      for joints it does not name); else derived (`derive_posture_std`):
+      `POSTURE_STD_FRACTION` (4 %) of each joint's range, at most `POSTURE_STD_MAX_DEG` (8 deg;
+      a continuous joint gets 8).
+    - ``posture_weight``: null-space weights in (0, 1] of the preference (IK ``w_pref``), one
+      value or one per joint; a heavier joint stays nearer its preferred angle. Default (null):
+      the preset's; else `DEFAULT_POSTURE_WEIGHT` (0.25) for every joint.
+    - ``limit_margin_deg`` [deg]: the IK keeps every joint this far inside its limits; a trial
+      that comes closer is rejected (default 2). The rest posture must keep it too.
+    - ``catch_tolerance`` [m]: largest hand error along the path and at the catch point
+      (default 0.005).
+    - ``ik_iters``: IK iterations per path node (default 8).
+    - ``oversample``: candidates per round / count (default 1.2).
+    - ``max_rounds``: candidate rounds before giving up (default 8); the error then counts the
+      candidates by cause (limits, misses with figures, catch points beyond the sampled reach).
     """
 
     count: int = 311
@@ -290,6 +347,7 @@ class _Resolved(NamedTuple):
     comfort: np.ndarray  # (J,) preferred final posture [rad]
     posture_std: np.ndarray  # (J,) [rad]
     posture_weight: np.ndarray  # (J,) IK w_pref
+    source: str  # where the robot-specific defaults came from (a preset, or derived)
 
 
 class _Params(NamedTuple):
@@ -329,25 +387,130 @@ class _Trials(NamedTuple):
     stretched: _Array  # (P,) duration lengthened beyond Fitts' law for the velocity limits
 
 
+class Workspace(NamedTuple):
+    """The end effector's reachable workspace, sampled (`sample_workspace`); n postures."""
+
+    hand: np.ndarray  # (n, 3) end-effector site positions [m]
+    chain: tuple[str, ...]  # named bodies from the world to the site's body, world first
+    body_pos: np.ndarray  # (n, len(chain), 3) their origins [m]
+    rest_hand: np.ndarray  # (3,) the site at the rest posture [m]
+    rest_body: np.ndarray  # (len(chain), 3) the bodies' origins at the rest posture [m]
+
+    @property
+    def extent(self) -> float:
+        """[m] the farthest sampled hand position from their mean."""
+        return float(np.linalg.norm(self.hand - self.hand.mean(axis=0), axis=1).max())
+
+
+def sample_workspace(
+    robot: Robot, margin: float = 0.0, n: int = WORKSPACE_SAMPLES, seed: int = WORKSPACE_SEED
+) -> Workspace:
+    """Forward kinematics (C MuJoCo, float64) of ``n`` postures drawn uniformly within the joint
+    limits shrunk by ``margin`` [rad] (`Robot.sample_postures`: continuous joints one turn about
+    rest; other joints of the model at ``qpos0``), from a fixed ``seed``."""
+    m = robot.mj_model
+    chain, b = [], int(m.site_bodyid[robot.site_id])
+    while True:
+        if mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b):
+            chain.append(b)
+        if b == 0:
+            break
+        b = int(m.body_parentid[b])
+    chain.reverse()
+    postures = robot.sample_postures(np.random.default_rng(seed), n, margin)
+    data = mujoco.MjData(m)
+
+    def fk(q):
+        data.qpos[:] = m.qpos0
+        data.qpos[robot.qpos_adr] = q
+        mujoco.mj_kinematics(m, data)
+        return data.site_xpos[robot.site_id].copy(), data.xpos[chain].copy()
+
+    hand, body = np.empty((n, 3)), np.empty((n, len(chain), 3))
+    for i, q in enumerate(postures):
+        hand[i], body[i] = fk(q)
+    rest_hand, rest_body = fk(robot.rest)
+    names = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, c) for c in chain)
+    return Workspace(hand, names, body, rest_hand, rest_body)
+
+
+def derive_region(robot: Robot, workspace: Workspace) -> CatchRegion:
+    """The catch region of a robot without a preset, from its sampled workspace (`DemoSettings`
+    ``region`` says how). Raises `UserError` when the end effector does not move."""
+    extent = workspace.extent
+    if not extent > MIN_WORKSPACE_EXTENT:
+        raise UserError(
+            f"robot {robot.name!r}: the end effector {robot.site_name!r} stays within "
+            f"{extent:.2g} m over {len(workspace.hand)} postures drawn within the joint limits: "
+            "an empty workspace; expected joints that move it (robot.joints, robot.end_effector)"
+        )
+    spread = np.linalg.norm(workspace.body_pos - workspace.rest_body, axis=-1).max(axis=0)
+    shoulder = int(np.flatnonzero(spread <= SHOULDER_SPREAD * extent)[-1])  # the world: 0
+    centre = workspace.rest_body[shoulder]
+    reach = float(np.linalg.norm(workspace.hand - centre, axis=1).max())
+    ahead = workspace.rest_hand[:2] - centre[:2]
+    front = 0.0
+    if np.linalg.norm(ahead) >= FRONT_MIN_FRACTION * reach:
+        front = round(math.degrees(math.atan2(ahead[1], ahead[0])), 1)
+    return CatchRegion(
+        frame=workspace.chain[shoulder],
+        radius=tuple(round(f * reach, 3) for f in REGION_RADIUS_FRACTION),
+        azimuth_deg=(front - REGION_AZIMUTH_HALF_DEG, front + REGION_AZIMUTH_HALF_DEG),
+        elevation_deg=REGION_ELEVATION_DEG,
+    )
+
+
+def derive_comfort(robot: Robot) -> np.ndarray:
+    """``(J,)`` [rad] the comfortable final posture of a robot without a preset: the rest
+    posture moved into the central `COMFORT_CENTRAL_FRACTION` of each joint's range (away from
+    the limits, Liegeois 1977); a continuous joint at rest."""
+    lower = np.where(robot.continuous, robot.rest, robot.lower)  # finite: no inf - inf
+    upper = np.where(robot.continuous, robot.rest, robot.upper)
+    cut = 0.5 * (1.0 - COMFORT_CENTRAL_FRACTION) * (upper - lower)
+    return np.clip(robot.rest, lower + cut, upper - cut)
+
+
+def derive_posture_std(robot: Robot) -> np.ndarray:
+    """``(J,)`` [rad] per-trial preference noise of a robot without a preset: a fraction
+    `POSTURE_STD_FRACTION` of each joint's range, at most `POSTURE_STD_MAX_DEG`."""
+    span = np.where(robot.continuous, np.inf, robot.upper - robot.lower)
+    return np.minimum(POSTURE_STD_FRACTION * span, math.radians(POSTURE_STD_MAX_DEG))
+
+
+def derive_defaults(robot: Robot, limit_margin_deg: float = 2.0) -> RobotPreset:
+    """The robot-specific defaults of a robot without a preset, as a `RobotPreset` (angles in
+    degrees; `derive_region` on the workspace within the limits shrunk by ``limit_margin_deg``,
+    `derive_comfort`, `derive_posture_std`, `DEFAULT_POSTURE_WEIGHT`)."""
+    names = robot.joint_names
+    workspace = sample_workspace(robot, math.radians(limit_margin_deg))
+    return RobotPreset(
+        region=derive_region(robot, workspace),
+        comfort_deg=dict(zip(names, np.rad2deg(derive_comfort(robot)).tolist())),
+        posture_std_deg=dict(zip(names, np.rad2deg(derive_posture_std(robot)).tolist())),
+        posture_weight={},
+    )
+
+
 def _resolve(robot: Robot, settings: DemoSettings) -> _Resolved:
-    """Fill the robot-specific settings from the robot's preset and check them against it."""
-    preset = ROBOT_PRESETS.get(robot.name)
+    """Fill the robot-specific settings from the robot's preset, or derive them from the robot
+    (`derive_defaults`), and check them against it."""
+    _check_rest(robot, settings)  # first: a range narrower than the margin fails here
     names = list(robot.joint_names)
+    preset = ROBOT_PRESETS.get(robot.name)
+    derived: list[RobotPreset] = []
 
-    def from_preset(field, value):
-        if value is not None:
-            return value
-        if preset is None:
-            raise UserError(
-                f"demos.{field}: robot {robot.name!r} has no preset; set demos.{field} explicitly"
-            )
-        return getattr(preset, field)
+    def default(field):
+        if preset is not None:
+            return getattr(preset, field)
+        if not derived:
+            derived.append(derive_defaults(robot, settings.limit_margin_deg))
+        return getattr(derived[0], field)
 
-    def per_joint(field, default):  # one value or one per joint in settings; a dict in presets
+    def per_joint(field, fallback):  # one value or one per joint in settings; a dict in presets
         value = getattr(settings, field)
         if value is None:
-            table = from_preset(field, None)
-            return np.array([table.get(n, default) for n in names], np.float64)
+            table = default(field)
+            return np.array([table.get(n, fallback) for n in names], np.float64)
         if len(value) not in (1, len(names)):
             raise UserError(
                 f"demos.{field}: expected 1 or {len(names)} values (one per joint), got "
@@ -355,7 +518,7 @@ def _resolve(robot: Robot, settings: DemoSettings) -> _Resolved:
             )
         return np.broadcast_to(np.asarray(value, np.float64), (len(names),)).copy()
 
-    region = from_preset("region", settings.region)
+    region = settings.region if settings.region is not None else default("region")
     m = robot.mj_model
     body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, region.frame)
     if body < 0:
@@ -369,21 +532,43 @@ def _resolve(robot: Robot, settings: DemoSettings) -> _Resolved:
     mujoco.mj_kinematics(m, data)
 
     if settings.comfort_joints is None:
-        comfort_deg = from_preset("comfort_deg", None)
+        comfort_deg = default("comfort_deg")
     else:
         comfort_deg = dict(zip(settings.comfort_joints, settings.comfort_deg or ()))
     comfort = np.array(robot.rest, np.float64)
     for name, deg in comfort_deg.items():
         if name not in names:
             raise UserError(f"demos.comfort_joints: no controlled joint {name!r}; joints: {names}")
-        comfort[names.index(name)] = np.deg2rad(deg)
-    return _Resolved(
-        region=region,
-        centre=data.xpos[body].copy(),
-        comfort=comfort,
-        posture_std=np.deg2rad(per_joint("posture_std_deg", DEFAULT_POSTURE_STD_DEG)),
-        posture_weight=per_joint("posture_weight", DEFAULT_POSTURE_WEIGHT),
-    )
+        k = names.index(name)
+        comfort[k] = np.deg2rad(deg)
+        if not robot.lower[k] <= comfort[k] <= robot.upper[k]:
+            raise UserError(
+                f"demos.comfort_deg: joint {name!r} at {deg:g} deg is outside its limits "
+                f"[{math.degrees(robot.lower[k]):.4g}, {math.degrees(robot.upper[k]):.4g}] deg"
+            )
+    posture_std = np.deg2rad(per_joint("posture_std_deg", DEFAULT_POSTURE_STD_DEG))
+    posture_weight = per_joint("posture_weight", DEFAULT_POSTURE_WEIGHT)
+    if preset is not None:
+        source = f"the preset of {robot.name!r}"
+    else:
+        source = "derived from the robot" if derived else "the settings"
+    return _Resolved(region, data.xpos[body].copy(), comfort, posture_std, posture_weight, source)
+
+
+def _check_rest(robot: Robot, settings: DemoSettings) -> None:
+    """Every demonstration starts at rest: a rest posture within ``limit_margin_deg`` of a limit
+    would fail every trial's limit check. Raises `UserError` naming the joint."""
+    margin = np.minimum(robot.rest - robot.lower, robot.upper - robot.rest)
+    need = math.radians(settings.limit_margin_deg) + LIMIT_TOUCH_TOL
+    if np.any(margin <= need):
+        k = int(np.argmin(margin - need))
+        raise UserError(
+            f"demos.limit_margin_deg: the rest posture ({robot.rest_source}) has joint "
+            f"{robot.joint_names[k]!r} at {robot.rest[k]:.4g} rad, {math.degrees(margin[k]):.3g} "
+            f"deg from its limit, within the {settings.limit_margin_deg:g} deg every "
+            "demonstration keeps (they start at rest); expected a smaller demos.limit_margin_deg "
+            "or a rest keyframe inside the limits"
+        )
 
 
 def halton(index: np.ndarray, bases=HALTON_BASES) -> np.ndarray:
@@ -581,16 +766,85 @@ def _simulate(
     )
 
 
-def _accept(trials: _Trials, settings: DemoSettings) -> np.ndarray:
-    """(P,) bool: finite, on the path and the catch point, clear of the IK's shrunk limits."""
-    miss = np.linalg.norm(trials.final_pos - trials.target, axis=-1)
-    touch = trials.margin.min(axis=1) <= math.radians(settings.limit_margin_deg) + LIMIT_TOUCH_TOL
-    finite = np.isfinite(trials.q).all(axis=(1, 2)) & np.isfinite(trials.duration)
+class _Checks(NamedTuple):
+    """A candidate pool's checks (numpy, P trials)."""
+
+    finite: np.ndarray  # (P,) bool: q and duration finite
+    miss: np.ndarray  # (P,) [m] hand at the end vs the catch point
+    track_error: np.ndarray  # (P,) [m]
+    touch: np.ndarray  # (P, J) bool: the joint came within the shrunk limits
+
+    def accepted(self, settings: DemoSettings) -> np.ndarray:
+        """(P,) bool: finite, on the path and the catch point, clear of the IK's shrunk limits."""
+        return (
+            self.finite
+            & (self.miss <= settings.catch_tolerance)
+            & (self.track_error <= settings.catch_tolerance)
+            & ~self.touch.any(axis=1)
+        )
+
+
+def _checks(trials: _Trials, settings: DemoSettings) -> _Checks:
+    near = math.radians(settings.limit_margin_deg) + LIMIT_TOUCH_TOL
+    return _Checks(
+        finite=np.isfinite(trials.q).all(axis=(1, 2)) & np.isfinite(trials.duration),
+        miss=np.linalg.norm(trials.final_pos - trials.target, axis=-1),
+        track_error=np.asarray(trials.track_error),
+        touch=np.asarray(trials.margin) <= near,
+    )
+
+
+def _failure(
+    robot: Robot, settings: DemoSettings, res: _Resolved, checks: _Checks, targets, n_valid
+) -> str:
+    """Why too few candidates passed: each cause with its count and figures, and what to change
+    for the commonest one. ``targets (P, 3)``: the catch points of ``checks``' P trials."""
+    region, centre = res.region, res.centre
+    tol, n = settings.catch_tolerance, len(checks.miss)
+    finite = checks.finite
+    missed = finite & ~(checks.miss <= tol)
+    strayed = finite & ~(checks.track_error <= tol)
+    touched = finite & checks.touch.any(axis=1)
+    causes, hints = [], []
+    if touched.any():
+        per_joint = checks.touch[finite].sum(axis=0)
+        joints = {robot.joint_names[k]: int(per_joint[k]) for k in np.argsort(-per_joint)}
+        joints = {name: c for name, c in joints.items() if c}
+        causes.append(
+            f"{int(touched.sum())} came within demos.limit_margin_deg = "
+            f"{settings.limit_margin_deg:g} deg of a joint limit (by joint: {joints})"
+        )
+        hints.append(
+            (
+                int(touched.sum()),
+                "lower demos.limit_margin_deg or move demos.region away from "
+                f"the postures that need joint {next(iter(joints))!r} at its limit",
+            )
+        )
+    if missed.any():
+        workspace = sample_workspace(robot, math.radians(settings.limit_margin_deg))
+        reach = float(np.linalg.norm(workspace.hand - centre, axis=1).max())
+        far = np.linalg.norm(np.asarray(targets, np.float64)[missed] - centre, axis=1) > reach
+        mm = 1e3 * checks.miss[missed]
+        causes.append(
+            f"{int(missed.sum())} missed the catch point by more than demos.catch_tolerance = "
+            f"{tol:g} m (median {np.median(mm):.3g} mm, largest {mm.max():.3g} mm), "
+            f"{int(far.sum())} of them farther from body {region.frame!r} than the hand reaches "
+            f"within the joint limits ({reach:.3g} m over {len(workspace.hand)} sampled postures)"
+        )
+        if 2 * far.sum() >= missed.sum():
+            fix = f"move demos.region inside the robot's reach (radius below {reach:.3g} m)"
+        else:
+            fix = "raise demos.ik_iters or move demos.region (the IK does not reach its points)"
+        hints.append((int(missed.sum()), fix))
+    if strayed.any():
+        causes.append(f"{int(strayed.sum())} left the hand path by more than that")
+    if not finite.all():
+        causes.append(f"{int((~finite).sum())} had non-finite joint angles or durations")
+    hint = max(hints)[1] + ", or raise demos.max_rounds" if hints else "raise demos.max_rounds"
     return (
-        finite
-        & (miss <= settings.catch_tolerance)
-        & (trials.track_error <= settings.catch_tolerance)
-        & ~touch
+        f"demos: only {n_valid} of {n} candidate trials passed the checks, expected "
+        f"{settings.count}: {'; '.join(causes)}; {hint}"
     )
 
 
@@ -638,6 +892,8 @@ def generate_demonstrations(
     rob = _Robot(**{f: np.asarray(arrays[f], dtype) for f in _Robot._fields})
 
     compiled, compile_s, chosen, n_valid = None, 0.0, [], 0
+    all_checks: list[_Checks] = []
+    all_targets: list[np.ndarray] = []
     for rnd in range(settings.max_rounds):  # rounds continue the Halton sequence
         u = (halton(np.arange(rnd * pool, (rnd + 1) * pool) + 1) + shift) % 1.0
         target = np.asarray(region_points(res.region, res.centre, u), dtype)
@@ -654,18 +910,20 @@ def generate_demonstrations(
             compiled = compile_cache.compile_traced(program, program_args, parts, None, on_traced)
             compile_s = time.perf_counter() - t0
         trials = _Trials(*(np.asarray(a) for a in jax.device_get(compiled(*args))))
-        ok = _accept(trials, settings)
+        checks = _checks(trials, settings)
+        ok = checks.accepted(settings)
         chosen.append(_Trials(*(a[ok] for a in trials)))
+        all_checks.append(checks)
+        all_targets.append(np.asarray(trials.target))
         n_valid += int(ok.sum())
         if n_valid >= settings.count:
             break
     else:
-        raise UserError(
-            f"demos: only {n_valid} of {settings.max_rounds * pool} candidate trials passed the "
-            f"checks, expected {settings.count}: raise demos.max_rounds or move demos.region "
-            "inside the robot's reach"
-        )
+        every = _Checks(*(np.concatenate(a) for a in zip(*all_checks)))
+        raise UserError(_failure(robot, settings, res, every, np.concatenate(all_targets), n_valid))
     good = _Trials(*(np.concatenate(a)[: settings.count] for a in zip(*chosen)))
+    # Continuous joints on the branch of the rest posture (a no-op without them).
+    good = good._replace(q=on_rest_branch(np.asarray(good.q), robot.rest, robot.continuous))
     if costs is None:
         costs = CostProgram(dyn, make_time_grid(settings.samples), settings.count, cache_parts)
     cost = costs(good.q, good.duration)[0]
@@ -697,7 +955,6 @@ def _report(robot, settings, res, good: _Trials, cost, counts: dict, timing: dic
         "swivel variability, Kang et al. 2005); rest to rest, inside the joint limits."
     )
     miss = np.linalg.norm(good.final_pos - good.target, axis=-1)
-    margin_deg = np.rad2deg(good.margin.min(axis=0))
     return {
         "synthetic": True,
         "description": description,
@@ -717,12 +974,14 @@ def _report(robot, settings, res, good: _Trials, cost, counts: dict, timing: dic
             "azimuth_deg": list(r.azimuth_deg),
             "elevation_deg": list(r.elevation_deg),
         },
+        "robot_defaults": res.source,  # region and posture preference not set in demos
+        "comfort_deg": dict(zip(robot.joint_names, np.round(np.rad2deg(res.comfort), 2).tolist())),
         "catch_points": good.target.tolist(),  # (count, 3) the targets, row i = db row i
         "catch_min_m": np.round(good.target.min(axis=0), 4).tolist(),
         "catch_max_m": np.round(good.target.max(axis=0), 4).tolist(),
         "catch_miss_max_m": float(miss.max()),
         "track_error_max_m": float(good.track_error.max()),
-        "min_limit_margin_deg": dict(zip(robot.joint_names, np.round(margin_deg, 2).tolist())),
+        "min_limit_margin_deg": _margins_deg(robot, good.margin.min(axis=0)),
         "max_speed_over_limit": float(good.speed_ratio.max()),
         "max_end_speed_rad_s": float(good.end_speed.max()),
         "asymmetry_range": [float(good.asymmetry.min()), float(good.asymmetry.max())],
@@ -730,6 +989,13 @@ def _report(robot, settings, res, good: _Trials, cost, counts: dict, timing: dic
         "cost_range": [float(cost.min()), float(cost.max())],
         **{k: round(v, 3) for k, v in timing.items()},
     }
+
+
+def _margins_deg(robot: Robot, margin) -> dict:
+    """Joint name -> smallest distance to a limit [deg], 2 decimals; None for a continuous joint
+    (it has no limit)."""
+    deg = np.round(np.rad2deg(np.asarray(margin)), 2).tolist()
+    return {n: None if c else d for n, d, c in zip(robot.joint_names, deg, robot.continuous)}
 
 
 def summarize_demonstrations(db: Database, robot: Robot) -> dict:
@@ -754,9 +1020,7 @@ def summarize_demonstrations(db: Database, robot: Robot) -> dict:
         "duration_mean_s": float(dur.mean()),
         "catch_min_m": np.round(cond.min(axis=0), 4).tolist(),
         "catch_max_m": np.round(cond.max(axis=0), 4).tolist(),
-        "min_limit_margin_deg": dict(
-            zip(robot.joint_names, np.round(np.rad2deg(margin), 2).tolist())
-        ),
+        "min_limit_margin_deg": _margins_deg(robot, margin),
         "max_end_speed_rad_s": float(np.abs(np.asarray(qd)[:, [0, -1]]).max()),
         "cost_mean": float(np.mean(np.asarray(db.cost)[keep])),
     }

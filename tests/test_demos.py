@@ -15,9 +15,13 @@ import pytest
 from evojax_motion.database import HUMAN
 from evojax_motion.demos import (
     CITATIONS,
+    POSTURE_STD_MAX_DEG,
+    REGION_AZIMUTH_HALF_DEG,
+    REGION_RADIUS_FRACTION,
     ROBOT_PRESETS,
     CatchRegion,
     DemoSettings,
+    derive_defaults,
     generate_demonstrations,
     summarize_demonstrations,
 )
@@ -37,6 +41,59 @@ HUMAN_DURATION_S = (0.4, 1.0)  # human reaching durations
 DURATION_NOISE_SIGMAS = 3.0  # Fitts' law noise is clipped at 3 standard deviations
 ARM6_REGION = CatchRegion("upper_link", (0.35, 0.6), (-30.0, 30.0), (-20.0, 20.0))
 TREE_ARM = Path(__file__).parent / "assets" / "tree_arm.xml"
+CONTINUOUS_ARM = Path(__file__).parent / "assets" / "continuous_arm.xml"
+TOL_REACH_REL = 0.03  # derived reach (4096 postures) vs a 20 000-posture reference, relative
+# A Franka-like arm (link offsets and joint ranges of the Franka Emika Panda, invented inertias)
+# without a keyframe: the rest posture is qpos0 with joints 4 and 6 on their limits, moved off
+# them by the robot; no preset.
+FRANKA_LIKE = """
+<mujoco model="franka_like">
+  <compiler angle="radian" autolimits="true"/>
+  <worldbody>
+    <body name="link0">
+      <inertial pos="-0.04 0 0.05" mass="0.63" diaginertia="0.003 0.003 0.003"/>
+      <body name="link1" pos="0 0 0.333">
+        <inertial pos="0 -0.04 -0.05" mass="4.97" diaginertia="0.70 0.70 0.009"/>
+        <joint name="joint1" axis="0 0 1" range="-2.8973 2.8973"/>
+        <body name="link2" quat="1 -1 0 0">
+          <inertial pos="0 -0.07 0.03" mass="0.646" diaginertia="0.008 0.028 0.025"/>
+          <joint name="joint2" axis="0 0 1" range="-1.7628 1.7628"/>
+          <body name="link3" pos="0 -0.316 0" quat="1 1 0 0">
+            <inertial pos="0.04 0.02 -0.04" mass="3.228" diaginertia="0.037 0.036 0.011"/>
+            <joint name="joint3" axis="0 0 1" range="-2.8973 2.8973"/>
+            <body name="link4" pos="0.0825 0 0" quat="1 1 0 0">
+              <inertial pos="-0.05 0.05 0.03" mass="3.587" diaginertia="0.026 0.020 0.031"/>
+              <joint name="joint4" axis="0 0 1" range="-3.0718 -0.0698"/>
+              <body name="link5" pos="-0.0825 0.384 0" quat="1 -1 0 0">
+                <inertial pos="0 0.04 -0.11" mass="1.226" diaginertia="0.036 0.029 0.009"/>
+                <joint name="joint5" axis="0 0 1" range="-2.8973 2.8973"/>
+                <body name="link6" quat="1 1 0 0">
+                  <inertial pos="0.06 -0.01 0.01" mass="1.666" diaginertia="0.002 0.004 0.005"/>
+                  <joint name="joint6" axis="0 0 1" range="-0.0175 3.7525"/>
+                  <body name="link7" pos="0.088 0 0" quat="1 1 0 0">
+                    <inertial pos="0 0 0.08" mass="0.735" diaginertia="0.013 0.010 0.005"/>
+                    <joint name="joint7" axis="0 0 1" range="-2.8973 2.8973"/>
+                    <site name="attachment_site" pos="0 0 0.107"/>
+                  </body>
+                </body>
+              </body>
+            </body>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="joint1" forcerange="-87 87"/>
+    <motor joint="joint2" forcerange="-87 87"/>
+    <motor joint="joint3" forcerange="-87 87"/>
+    <motor joint="joint4" forcerange="-87 87"/>
+    <motor joint="joint5" forcerange="-12 12"/>
+    <motor joint="joint6" forcerange="-12 12"/>
+    <motor joint="joint7" forcerange="-12 12"/>
+  </actuator>
+</mujoco>
+"""
 
 
 @pytest.fixture(scope="module")
@@ -208,10 +265,15 @@ def test_summary_matches_database(mahru, default_set):
     np.testing.assert_allclose(summary["catch_max_m"], db.condition.max(axis=0), atol=1e-4)
 
 
-@pytest.mark.slow
-def test_arm6_with_its_own_region():
+@pytest.fixture(scope="module")
+def arm6():
     robot = load_robot("arm6")
-    dyn = make_dynamics(robot, backend="rnea")
+    return robot, make_dynamics(robot, backend="rnea")
+
+
+@pytest.mark.slow
+def test_arm6_with_its_own_region(arm6):
+    robot, dyn = arm6
     settings = DemoSettings(count=8, samples=32, region=ARM6_REGION)
     db, report = generate_demonstrations(robot, dyn, settings, jax.random.key(3))
     assert db.q.shape == (8, 32, 6) and db.valid.all()
@@ -253,7 +315,8 @@ def test_settings_validation_names_the_field(kwargs, field):
     [
         ({"radius": (0.5, 0.3)}, "radius"),
         ({"radius": (0.0, 0.3)}, "radius"),
-        ({"azimuth_deg": (-200.0, 0.0)}, "azimuth_deg"),
+        ({"azimuth_deg": (-400.0, 0.0)}, "azimuth_deg"),
+        ({"azimuth_deg": (-100.0, 300.0)}, "azimuth_deg"),  # more than one turn
         ({"elevation_deg": (10.0,)}, "elevation_deg"),
         ({"frame": ""}, "frame"),
     ],
@@ -273,9 +336,22 @@ def test_robot_specific_settings_are_checked_against_the_robot(mahru):
     for settings, where in cases:
         with pytest.raises(UserError, match=where):
             generate_demonstrations(robot, dyn, settings, jax.random.key(0))
+    outside = DemoSettings(comfort_joints=("elbow",), comfort_deg=(170.0,))  # range 0..145
+    with pytest.raises(UserError, match=r"^demos\.comfort_deg: joint 'elbow' at 170 deg"):
+        generate_demonstrations(robot, dyn, outside, jax.random.key(0))
+
+
+def test_a_rest_posture_near_a_limit_is_named_before_any_trial():
+    """tree_arm has no keyframe: its l_elbow rests at qpos0 = 0, on its limit, moved 5 % of the
+    range (7.2 deg) off it by the robot. A margin wider than that fails every trial; the error
+    names the joint and the rest posture, not the catch region."""
     custom = robot_from_mjcf_text("custom", TREE_ARM.read_text(), site="tip")
-    with pytest.raises(UserError, match=r"^demos\.region: robot 'custom' has no preset"):
-        generate_demonstrations(custom, make_dynamics(custom), DemoSettings(), jax.random.key(0))
+    k = custom.joint_names.index("l_elbow")
+    gap = np.rad2deg(custom.rest[k] - custom.lower[k])
+    assert gap == pytest.approx(0.05 * np.rad2deg(2.5))
+    settings = DemoSettings(limit_margin_deg=10.0)
+    with pytest.raises(UserError, match=r"^demos\.limit_margin_deg: the rest posture .* 'l_elbow'"):
+        generate_demonstrations(custom, make_dynamics(custom), settings, jax.random.key(0))
 
 
 def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsys):
@@ -320,3 +396,102 @@ def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsy
     path.unlink()
     same(workflow.demonstrations(cfg, robot, dyn), first)  # no key: nothing kept
     assert len(calls) == 3 and not path.exists()
+
+
+@pytest.fixture(scope="module")
+def franka_like():
+    return robot_from_mjcf_text("franka_like", FRANKA_LIKE)
+
+
+def _reference_reach(robot, body: str, n: int = 20_000) -> float:
+    """Largest distance of the site from ``body``'s rest origin over ``n`` postures drawn
+    uniformly within the limits (continuous joints: a full turn), by C MuJoCo."""
+    m, d = robot.mj_model, mujoco.MjData(robot.mj_model)
+    d.qpos[robot.qpos_adr] = robot.rest
+    mujoco.mj_kinematics(m, d)
+    centre = d.xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, body)].copy()
+    lo = np.where(robot.continuous, -np.pi, robot.lower)
+    hi = np.where(robot.continuous, np.pi, robot.upper)
+    reach = 0.0
+    for q in np.random.default_rng(1).uniform(lo, hi, (n, robot.n_joints)):
+        d.qpos[robot.qpos_adr] = q
+        mujoco.mj_kinematics(m, d)
+        reach = max(reach, float(np.linalg.norm(d.site_xpos[robot.site_id] - centre)))
+    return reach
+
+
+def test_defaults_derived_for_an_arm_without_preset(franka_like):
+    """No keyframe, no preset: the comfortable posture is rest moved into the central half of
+    each range (joints 4 and 6 rest near their limits), the noise 4 % of a range at most 8 deg,
+    the region a shell sector around the shoulder (link2, on joint 1's axis) at 0.5-0.75 of the
+    reach, in front (+x: the hand rests nearly above the shoulder)."""
+    robot = franka_like
+    d = derive_defaults(robot)
+    span = robot.upper - robot.lower
+    expected = np.rad2deg(robot.rest)
+    expected[3] = np.rad2deg(robot.upper[3] - 0.25 * span[3])  # rest -0.22 rad: beyond -0.82
+    expected[5] = np.rad2deg(robot.lower[5] + 0.25 * span[5])  # rest 0.17 rad: below 0.93
+    np.testing.assert_allclose(list(d.comfort_deg.values()), expected, atol=1e-9)
+    std = np.minimum(np.rad2deg(0.04 * span), POSTURE_STD_MAX_DEG)
+    np.testing.assert_allclose(list(d.posture_std_deg.values()), std, atol=1e-9)
+    assert std[3] < POSTURE_STD_MAX_DEG  # joint 4's 172 deg range: 6.9 deg
+    assert d.region.frame == "link2"
+    assert d.region.azimuth_deg == (-REGION_AZIMUTH_HALF_DEG, REGION_AZIMUTH_HALF_DEG)
+    reach = _reference_reach(robot, "link2")
+    lo, hi = REGION_RADIUS_FRACTION
+    assert d.region.radius[1] == pytest.approx(hi * reach, rel=TOL_REACH_REL)
+    assert d.region.radius[0] == pytest.approx(lo * reach, rel=TOL_REACH_REL)
+
+
+def test_derived_defaults_of_continuous_joints_are_about_rest():
+    """continuous_arm: spin and twist have no range; their comfortable angle is rest (spin
+    rests 2.5 rad from 0) and their noise the largest; the limited joints follow their ranges."""
+    robot = load_robot(CONTINUOUS_ARM)
+    d = derive_defaults(robot)
+    comfort = np.deg2rad(list(d.comfort_deg.values()))
+    np.testing.assert_allclose(comfort[robot.continuous], robot.rest[robot.continuous])
+    std = np.array(list(d.posture_std_deg.values()))
+    np.testing.assert_allclose(std[robot.continuous], POSTURE_STD_MAX_DEG)
+    span = (robot.upper - robot.lower)[~robot.continuous]
+    np.testing.assert_allclose(std[~robot.continuous], np.rad2deg(0.04 * span))
+
+
+def test_an_end_effector_that_does_not_move_is_an_empty_workspace():
+    xml = """<mujoco><compiler angle="radian"/><worldbody><body name="b">
+      <joint name="j" axis="0 0 1" range="-1 1"/><geom size="0.1"/><site name="s" pos="0 0 0.3"/>
+      </body></worldbody></mujoco>"""
+    robot = robot_from_mjcf_text("spinner", xml)
+    with pytest.raises(UserError, match=r"^robot 'spinner': the end effector 's' .* empty"):
+        derive_defaults(robot)
+
+
+@pytest.mark.slow
+def test_an_arm_without_preset_or_keyframe_gets_its_demonstrations(franka_like):
+    """The Franka-like arm with every demos setting at its default: every trial of the set
+    valid, inside the limits with the margin, rest to rest, ending on its catch point."""
+    robot = franka_like
+    settings = DemoSettings(count=8, samples=24)
+    db, report = generate_demonstrations(robot, make_dynamics(robot), settings, jax.random.key(0))
+    assert report["robot_defaults"] == "derived from the robot" and db.valid.sum() == 8
+    margin = np.minimum(db.q - robot.lower, robot.upper - db.q).min()
+    assert margin >= np.deg2rad(settings.limit_margin_deg)
+    np.testing.assert_array_equal(db.q[:, 0], np.broadcast_to(robot.rest, (8, 7)).astype("f4"))
+    catch = np.asarray(report["catch_points"])
+    ends = np.stack([_mj_site(robot, q) for q in db.q[:, -1]])
+    assert np.max(np.linalg.norm(ends - catch, axis=1)) <= TOL_CATCH
+
+
+@pytest.mark.slow
+def test_a_region_beyond_reach_is_named_with_figures(arm6):
+    """Catch points 1.1-1.3 m from arm6's shoulder (it reaches about 1 m): the error counts
+    the missed points, says how far the hand reaches and blames the region."""
+    robot, dyn = arm6
+    far = CatchRegion("upper_link", (1.1, 1.3), (-30.0, 30.0), (-20.0, 20.0))
+    settings = DemoSettings(count=8, samples=32, region=far, max_rounds=1)
+    with pytest.raises(UserError) as err:
+        generate_demonstrations(robot, dyn, settings, jax.random.key(3))
+    text = str(err.value)
+    assert text.startswith("demos: only 0 of 10 candidate trials passed")
+    assert "10 missed the catch point" in text
+    assert "10 of them farther from body 'upper_link' than the hand reaches" in text
+    assert "move demos.region inside the robot's reach" in text
