@@ -9,7 +9,9 @@ with an explicit PRNG key, from where the robot will work, and reused by every g
   basis radius (rejection sampling over ``candidates_per_condition * m`` candidates, in key order);
 - ``qf``: a human-like final posture, by IK of the target (``ik.solve_ik``) started from the nearest
   neighbour's final posture and pulled toward the neighbours' mean final posture in the redundant
-  directions; candidates the IK cannot reach within ``ik_tolerance`` are rejected;
+  directions; candidates the IK cannot reach within ``ik_tolerance`` are rejected. Neighbour means
+  are taken on one branch (the database keeps continuous joints on the rest branch,
+  `database.on_robot_branch`), and a continuous joint of ``qf`` is kept within pi of the start;
 - ``q0 = robot.rest``, ``qd0 = qdf = 0`` (rest to rest, like the demonstrations);
 - duration: the neighbours' mean duration, or ``EvolutionSettings.duration``.
 
@@ -26,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.angles import posture_on_rest_branch
 from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
 from evojax_motion.compile_cache import TracedProgram, traced_program
 from evojax_motion.compile_interp import Boundary, compile_interpolation
@@ -76,6 +79,14 @@ def _masked_mean(x, mask):
     """Mean of ``x (C, k, ...)`` over the k rows where ``mask (C, k)``."""
     w = mask.astype(x.dtype).reshape(mask.shape + (1,) * (x.ndim - 2))
     return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
+
+
+def _near_branch(q: np.ndarray, ref: np.ndarray, continuous: np.ndarray) -> np.ndarray:
+    """Postures ``q (B, J)`` with continuous joints moved by whole turns to within pi of
+    ``ref (B, J)`` (`angles.posture_on_rest_branch`); other joints unchanged, bit for bit."""
+    if not np.any(continuous):
+        return q
+    return np.where(continuous, posture_on_rest_branch(q, ref, continuous), q)
 
 
 def _take(tree, idx: np.ndarray):
@@ -217,7 +228,10 @@ def make_conditions(
         ik = reach(*_take((cand, nb), padded), q)
         ok = np.flatnonzero(np.asarray(ik.pos_error)[: idx.size] <= settings.ik_tolerance)
         chosen.append(idx[ok])
-        qf.append(np.asarray(ik.q)[ok])
+        # The IK starts at the nearest neighbour's final posture: a continuous joint that
+        # turned past a half turn from there goes back by whole turns (the same posture).
+        start = q[np.asarray(nb.index)[idx[ok], 0], -1]
+        qf.append(_near_branch(np.asarray(ik.q)[ok], start, robot.continuous))
         ik_error.append(np.asarray(ik.pos_error)[ok])
         if sum(c.size for c in chosen) >= m:
             break

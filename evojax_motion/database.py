@@ -5,7 +5,7 @@ stay static under jit. Saved as ``.npz`` (``allow_pickle=False``) with these key
 
 | key | shape | unit / meaning |
 |---|---|---|
-| ``q`` | (N, T, J) | joint angles [rad] at normalised time ``s_i = i/(T-1)`` |
+| ``q`` | (N, T, J) | joint angles [rad] at normalised time ``s_i = i/(T-1)`` (see below) |
 | ``duration`` | (N,) | [s] |
 | ``condition`` | (N, 3) | hand (end-effector site) position at the end of the motion [m] |
 | ``cost`` | (N,) | ``0.5 * int |tau|^2 dt`` [N^2 m^2 s] (paper eq. 5) |
@@ -17,6 +17,8 @@ stay static under jit. Saved as ``.npz`` (``allow_pickle=False``) with these key
 | ``synthetic`` | () | True when the human demonstrations are synthetic |
 | ``description`` | () | where the demonstrations come from |
 | ``format_version`` | () | file format version |
+
+Continuous joints (no range) are written and read on the rest branch (`on_robot_branch`).
 """
 
 from __future__ import annotations
@@ -128,9 +130,29 @@ def nonfinite_rows(db: Database) -> np.ndarray:
     return np.flatnonzero(np.asarray(db.valid) & ~finite)
 
 
+def on_robot_branch(db: Database, meta: DatabaseMeta) -> Database:
+    """``db`` with the continuous joints of ``meta``'s robot on its rest branch
+    (`angles.on_rest_branch`: each trajectory unwrapped along time, its mean within pi of the
+    rest posture), so that averages and distances over joint angles compare like with like.
+    Unchanged where the robot has no continuous joint, or its stored MJCF does not build a
+    robot with these joints (then no joint is known to be continuous)."""
+    from evojax_motion.angles import on_rest_branch
+    from evojax_motion.robot import robot_from_mjcf_text
+
+    try:
+        robot = robot_from_mjcf_text(meta.robot_name, meta.mjcf, meta.joint_names, meta.site_name)
+    except UserError:
+        return db
+    if not robot.continuous.any():
+        return db
+    return db._replace(q=on_rest_branch(np.asarray(db.q), robot.rest, robot.continuous))
+
+
 def save_database(path: str | os.PathLike, db: Database, meta: DatabaseMeta) -> Path:
-    """Write ``db`` and ``meta`` to ``path`` (.npz) atomically: a crash keeps the old file."""
+    """Write ``db`` and ``meta`` to ``path`` (.npz) atomically: a crash keeps the old file.
+    Continuous joints are written on the rest branch (`on_robot_branch`)."""
     path = Path(path)
+    db = on_robot_branch(db, meta)
     arrays = {k: np.asarray(v) for k, v in db._asdict().items()}
     arrays.update(
         joint_names=np.asarray(meta.joint_names, dtype=str),
@@ -209,7 +231,9 @@ def database_shape(path: str | os.PathLike) -> tuple[int, ...]:
 
 
 def load_database(path: str | os.PathLike) -> tuple[Database, DatabaseMeta]:
-    """Read and validate a database file. Raises ``UserError`` naming the file and the problem."""
+    """Read and validate a database file. Raises ``UserError`` naming the file and the problem.
+    Continuous joints come back on the rest branch (`on_robot_branch`), also from files written
+    before databases were stored that way."""
     path = Path(path)
     data = _read_npz(path)
     missing = [k for k in (*_ARRAY_KEYS, *_META_KEYS) if k not in data]
@@ -226,7 +250,7 @@ def load_database(path: str | os.PathLike) -> tuple[Database, DatabaseMeta]:
     )
     meta = _meta_from(data)
     validate_database(db, meta, str(path))
-    return db, meta
+    return on_robot_branch(db, meta), meta
 
 
 def validate_database(db: Database, meta: DatabaseMeta, where: str = "database") -> None:

@@ -1,5 +1,7 @@
 """Database layout, atomic save/load round trip, and clear errors on bad files."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from evojax_motion.database import (
     save_database,
 )
 from evojax_motion.errors import UserError
+from evojax_motion.robot import load_robot
 
 META = DatabaseMeta("toy", "<mujoco/>", ("a", "b"), "hand", True, "test data")
 
@@ -66,3 +69,69 @@ def test_load_rejects_nan_and_shape_mismatch(tmp_path):
     save_database(tmp_path / "joints.npz", db, meta3)
     with pytest.raises(UserError, match="joint_names"):
         load_database(tmp_path / "joints.npz")
+
+
+CONTINUOUS_ARM = Path(__file__).parent / "assets" / "continuous_arm.xml"
+TOL_TURN = 1e-5  # [rad] float32 rounding of a whole turn added and taken away again
+
+
+def _write_unnormalised(path, db, meta):
+    """A database file as written before continuous joints were stored on the rest branch."""
+    np.savez(
+        path,
+        **{k: np.asarray(v) for k, v in db._asdict().items()},
+        joint_names=np.asarray(meta.joint_names, dtype=str),
+        robot_name=np.asarray(meta.robot_name),
+        robot_mjcf=np.asarray(meta.mjcf),
+        site_name=np.asarray(meta.site_name),
+        synthetic=np.asarray(meta.synthetic),
+        description=np.asarray(meta.description),
+        format_version=np.asarray(1),
+    )
+
+
+def test_continuous_joints_are_loaded_and_saved_on_the_rest_branch(tmp_path):
+    """Rows stored whole turns away from the rest branch, or wrapped into [-pi, pi) in the
+    middle of a motion, come back as the same poses on one branch; limited joints are untouched
+    bit for bit."""
+    robot = load_robot(CONTINUOUS_ARM)
+    cont = robot.continuous
+    assert cont.tolist() == [True, False, True, False]  # spin, lift, twist, reach
+    rng = np.random.default_rng(1)
+    n, t = 6, 16
+    s = np.linspace(0.0, 1.0, t)[None, :, None]
+    final = robot.rest + rng.uniform(-1.0, 1.0, (n, robot.n_joints)) * [2.0, 0.5, 2.0, 0.02]
+    final[4, 0] = 4.0  # spin from rest (2.5 rad) past pi
+    truth = (robot.rest + s * (final - robot.rest)[:, None]).astype(np.float32)  # (n, t, J)
+    stored = truth.copy()
+    turns = np.array([0, 1, -2, 3, 0, -1])
+    stored[..., cont] += (2 * np.pi * turns)[:, None, None].astype(np.float32)
+    wrapped = (stored[4] + np.pi) % (2 * np.pi) - np.pi  # wrapped like atan2 would
+    stored[4][:, cont] = wrapped[:, cont]
+    assert np.abs(np.diff(stored[4][:, 0])).max() > np.pi  # the row jumps a turn
+    db = make_database(stored, np.full(n, 0.8), rng.normal(size=(n, 3)), np.ones(n))
+    meta = DatabaseMeta.of_robot(robot, synthetic=True, description="branch test")
+
+    old = tmp_path / "old.npz"
+    _write_unnormalised(old, db, meta)
+    loaded, _ = load_database(old)
+    np.testing.assert_allclose(loaded.q[..., cont], truth[..., cont], atol=TOL_TURN)
+    np.testing.assert_array_equal(loaded.q[..., ~cont], stored[..., ~cont])
+    mean = loaded.q[..., cont].mean(axis=1)
+    assert np.all(np.abs(mean - robot.rest[cont]) <= np.pi)
+
+    saved = save_database(tmp_path / "new.npz", db, meta)
+    with np.load(saved) as raw:
+        np.testing.assert_allclose(raw["q"][..., cont], truth[..., cont], atol=TOL_TURN)
+        np.testing.assert_array_equal(raw["q"][..., ~cont], stored[..., ~cont])
+
+
+def test_limited_joints_round_trip_bit_for_bit(tmp_path):
+    """A robot without continuous joints: the branch step leaves every bit as stored."""
+    robot = load_robot("arm6")
+    rng = np.random.default_rng(2)
+    q = robot.rest + rng.normal(0.0, 0.5, (4, 10, robot.n_joints))
+    db = make_database(q, np.ones(4), rng.normal(size=(4, 3)), np.ones(4), capacity=6)
+    meta = DatabaseMeta.of_robot(robot, synthetic=False, description="")
+    db2, _ = load_database(save_database(tmp_path / "db.npz", db, meta))
+    assert np.asarray(db2.q).tobytes() == np.asarray(db.q).tobytes()
