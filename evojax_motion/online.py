@@ -797,6 +797,26 @@ def nearest_reachable(
     return best.astype(np.float32), float(np.linalg.norm(best - target))
 
 
+def final_hand(robot: Robot, q_final) -> np.ndarray:
+    """Where the end effector is at the postures ``q_final (B, J)`` [rad]: ``(B, 3)`` [m].
+
+    Host-side forward kinematics by C MuJoCo (float64) of exactly the postures written, independent
+    of the traced dynamics that generated them.
+    """
+    import mujoco
+
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    q_final = np.asarray(q_final, np.float64).reshape(-1, robot.n_joints)
+    out = np.zeros((q_final.shape[0], 3))
+    for i, q in enumerate(q_final):
+        d.qpos[:] = m.qpos0
+        d.qpos[robot.qpos_adr] = q
+        mujoco.mj_kinematics(m, d)
+        out[i] = d.site_xpos[robot.site_id]
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class OnlineModel:
     """Everything a query needs, loaded once: the robot rebuilt from the database file, its

@@ -7,10 +7,13 @@
 come from its ``config.yaml``). The output's format follows its suffix or ``--format``
 (`export`). An unreachable target or an uncatchable ball is a `UserError` (one line ``error:
 ...``, exit status 2) that says how far the reachable region is; ``--nearest`` takes the nearest
-reachable point instead. Nothing is written unless the motion is finite and inside the joint,
-velocity and torque limits: a motion too fast for them is slowed down (`online`, time scaling; the
-summary says so), and one that no duration allowed can bring within them is a `UserError` that
-names the joint, the speed or torque it needs against its limit, and when.
+reachable point instead. The hand (forward kinematics of the written final posture; for a catch, at
+the catch time) must end within ``--tolerance`` mm (default 5) of the target, else exit 2 with
+the miss, where the hand is and the nearest reachable point, or with ``--nearest`` a motion to
+that point (the output says so). Nothing is written unless the motion is finite and inside the
+joint, velocity and torque limits: a motion too fast for them is slowed down (`online`, time
+scaling; the summary says so), and one that no duration allowed can bring within them is a
+`UserError` that names the joint, the speed or torque it needs against its limit, and when.
 
 The lead's ``cli.build_parser`` calls `add_online_parsers` on its subparsers.
 """
@@ -25,12 +28,21 @@ import numpy as np
 
 from evojax_motion.errors import UserError
 
+DEFAULT_TOLERANCE_MM = 5.0  # the largest miss of the hand at the target a written motion may have
+
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", required=True, help="database .npz or run directory (db_final.npz)")
     p.add_argument("--out", required=True, help="trajectory file (.csv, .npz or .json)")
     p.add_argument("--format", choices=("csv", "npz", "json"), default=None)
     p.add_argument("--nearest", action="store_true", help="use the nearest reachable point")
+    p.add_argument(
+        "--tolerance",
+        type=float,
+        default=DEFAULT_TOLERANCE_MM,
+        metavar="MM",
+        help=f"largest miss of the hand at the target [mm] (default {DEFAULT_TOLERANCE_MM:g})",
+    )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     p.add_argument("--dynamics", choices=("rnea", "mjx"), default="rnea", help="torque backend")
 
@@ -64,6 +76,43 @@ def add_online_parsers(subparsers) -> None:
     p.set_defaults(func=cmd_catch)
 
 
+def _tolerance(args) -> float:
+    """``--tolerance`` [mm] -> [m]."""
+    tol = args.tolerance
+    if not (np.isfinite(tol) and tol > 0):
+        raise UserError(f"--tolerance: expected a number > 0 [mm], got {tol:g}")
+    return tol * 1e-3
+
+
+def _miss(model, motion, i: int) -> tuple[np.ndarray, float]:
+    """Where the written final posture of motion ``i`` puts the hand (``(3,)`` [m]) and how far
+    that is from its target [m]."""
+    from evojax_motion.online import final_hand
+
+    hand = final_hand(model.robot, motion.q[i, -1])[0]
+    return hand, float(np.linalg.norm(hand - np.asarray(motion.target[i], np.float64)))
+
+
+def _miss_line(model, motion, i: int, tol: float, at: str = "") -> str | None:
+    """None when motion ``i`` ends within ``tol`` [m] of its target, else what misses and why."""
+    hand, miss = _miss(model, motion, i)
+    if miss <= tol:
+        return None
+    line = (
+        f"the hand misses the target {_vec(motion.target[i])} m by {miss * 1e3:.1f} mm"
+        f"{' ' + at if at else ''} (tolerance {tol * 1e3:g} mm): the final posture puts it at "
+        f"{_vec(hand)} m"
+    )
+    excess = float(motion.limit_excess[i])
+    if excess > 0:
+        how = "minimum-jerk blend" if bool(motion.fallback[i]) else "null-space projection"
+        line += (
+            f"; plain interpolation exceeded the joint limits by {excess:.4f} rad and the {how} "
+            "moved the motion off the target"
+        )
+    return line
+
+
 def _check_out(args) -> str:
     from evojax_motion.export import resolve_format
 
@@ -87,6 +136,9 @@ def _write(args, fmt, model, motion, i: int, meta: dict, window: str = "") -> Pa
     from evojax_motion.export import make_trajectory_data, write_trajectory
     from evojax_motion.online import explain_unusable
 
+    missed = _miss_line(model, motion, i, _tolerance(args))
+    if missed:
+        raise UserError(f"{missed}; nothing written")
     if not bool(motion.ok[i]):
         why = explain_unusable(model.robot, motion, i, model.settings, window)
         raise UserError(f"{why}; nothing written")
@@ -169,16 +221,23 @@ def cmd_generate(args) -> int:
     opened = _open(args)
     model, _, check = opened
     target = np.asarray(args.target, np.float32)
+    tol = _tolerance(args)
     motion = _generate_one(opened, target, args.duration, args.start)
     note = None
-    if not bool(motion.reachable[0]):
+    missed = _miss_line(model, motion, 0, tol)
+    if not bool(motion.reachable[0]) or missed:
         point, dist = nearest_reachable(check, model.db_device, target)
-        where = (
-            f"target {_vec(target)} m is outside the reachable region: the nearest reachable "
-            f"point is {_vec(point)} m, {dist:.3f} m away"
-        )
+        nearest = f"the nearest reachable point is {_vec(point)} m, {dist:.3f} m away"
+        if bool(motion.reachable[0]):
+            where = f"{missed}; {nearest}"
+        else:
+            _, miss = _miss(model, motion, 0)
+            where = (
+                f"target {_vec(target)} m is outside the reachable region (the hand would miss it "
+                f"by {miss * 1e3:.1f} mm; tolerance {tol * 1e3:g} mm): {nearest}"
+            )
         if not args.nearest:
-            raise UserError(f"{where}; pass --nearest to use it")
+            raise UserError(f"{where}; pass --nearest to use it; nothing written")
         note = f"{where}; using it (--nearest)"
         motion = _generate_one(opened, point, args.duration, args.start)
         if not bool(motion.reachable[0]):
@@ -233,7 +292,7 @@ def cmd_catch(args) -> int:
     import jax
 
     from evojax_motion.catching import explain_plan, validate_ball
-    from evojax_motion.online import describe_limits
+    from evojax_motion.online import describe_limits, nearest_reachable
 
     fmt = _check_out(args)
     p0, v0 = validate_ball(args.ball)
@@ -248,10 +307,22 @@ def cmd_catch(args) -> int:
     plan, motion = jax.device_get(catcher(model.db_device, p0, v0, q0))
     line = explain_plan(plan, 0)
     note = None
+    tol = _tolerance(args)
     if not bool(plan.feasible[0]):
         if not args.nearest:
             raise UserError(f"{line}; pass --nearest to move toward the ball anyway")
         motion, note = _nearest_attempt(opened, catch, plan)
+    else:
+        at = f"at the catch time t = {float(plan.catch_time[0]):.3f} s"
+        missed = _miss_line(model, motion, 0, tol, at)
+        if missed:
+            point, dist = nearest_reachable(opened[2], model.db_device, motion.target[0])
+            where = f"{missed}; the nearest reachable point is {_vec(point)} m, {dist:.3f} m away"
+            if not args.nearest:
+                raise UserError(f"{where}; pass --nearest to use it; nothing written")
+            plan = plan._replace(feasible=np.zeros_like(plan.feasible))
+            motion = _retimed(opened, point, float(plan.catch_time[0]), motion)
+            note = f"{where}; moving there instead (--nearest, not a catch)"
     meta = _motion_meta(model, motion, 0)
     meta.update(
         ball=_vec(np.concatenate([p0[0], v0[0]])),
@@ -325,6 +396,16 @@ def _nearest_attempt(opened, catch, plan):
         raise UserError(f"the nearest point {_vec(point)} m could not be reached; nothing written")
     start = max(catch.reaction_time, t_ball - float(motion.duration[0]))  # after time scaling
     return motion._replace(t=motion.t + start), note
+
+
+def _retimed(opened, point, end: float, like):
+    """A motion to ``point (3,)`` over the duration of motion ``like``, ending at ``end`` [s after
+    release] (later if time scaling stretched it)."""
+    motion = _generate_one(opened, np.asarray(point, np.float32), float(like.duration[0]), None)
+    if not bool(motion.reachable[0]):
+        raise UserError(f"the nearest point {_vec(point)} m could not be reached; nothing written")
+    start = float(like.t[0, 0])
+    return motion._replace(t=motion.t + start)
 
 
 def _natural_duration(check, model, point) -> float:

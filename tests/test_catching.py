@@ -19,6 +19,7 @@ from evojax_motion.errors import UserError
 TOL_FLIGHT = 1e-4  # m: float32 ballistic positions over 1.5 s (|p| ~ 3 m)
 TOL_DRAG = 1e-4  # m: RK4 (4 substeps of 10 ms) vs SciPy's DOP853 at 1e-10
 TOL_HAND = 1e-3  # m: hand at the catch point at the end of the motion
+TOL_CLI_HAND = 5e-3  # m: the catch command's default --tolerance (5 mm)
 GRAVITY = np.array([0.0, 0.0, -9.81], np.float32)
 
 
@@ -142,6 +143,20 @@ def test_cli_catch(tmp_path, capsys, monkeypatch):
     assert "catch at t =" in capsys.readouterr().out
     data = read_trajectory(out)
     assert data.meta["caught"] and data.t[0] >= 0.1 - 1e-6
+    # the written hand, by C MuJoCo's kinematics, at the ball (vacuum flight) at the catch time
+    from online_support import hand_positions
+
+    t_c = float(data.meta["catch_time"])
+    assert abs(float(data.t[-1]) - t_c) <= 1e-4
+    ball_at = p0 + v0 * t_c + 0.5 * GRAVITY * t_c**2
+    hand = hand_positions(env.robot, data.q[-1:])[0]
+    assert np.linalg.norm(hand - ball_at) <= TOL_CLI_HAND
+    tight = tmp_path / "tight.npz"
+    argv = ["catch", "--db", str(db), "--ball", *ball, "--out", str(tight), *horizon]
+    assert _cli([*argv, "--tolerance", "1e-6"]) == 2
+    msg = capsys.readouterr().out
+    assert "the hand misses the target" in msg and "at the catch time" in msg and " mm" in msg
+    assert not tight.exists()
     far = [f"{x:.6f}" for x in np.r_[3.0, 3.0, 1.6, -4.0, 0.0, 3.0]]
     out2 = tmp_path / "no.csv"
     assert _cli(["catch", "--db", str(db), "--ball", *far, "--out", str(out2), *horizon]) == 2

@@ -220,3 +220,102 @@ def test_gravity_over_a_torque_limit_has_no_motion(env, db_file, tmp_path, capsy
     msg = capsys.readouterr().out
     assert "joint 'shoulder_pitch' needs" in msg and "N m of torque" in msg
     assert "against a limit of 3 N m" in msg and not out.exists()
+
+
+# --- no useless success: the hand must end within --tolerance of the target --------------------
+
+TOL_HAND = 5e-3  # [m] the CLI's default --tolerance (5 mm)
+TOL_ROUND = 1e-4  # [m] the written meta rounds coordinates to 0.1 mm
+
+
+def _hand_cli(env, db_file, monkeypatch):
+    from test_online import _cli
+
+    from evojax_motion import online_cli
+
+    opened = cli_session(env, db_file)
+    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    return _cli
+
+
+def _written_hand(env, path) -> np.ndarray:
+    """Where the written final posture puts the hand, by C MuJoCo's mj_kinematics: ``(3,)``."""
+    from online_support import hand_positions
+
+    from evojax_motion.export import read_trajectory
+
+    return hand_positions(env.robot, read_trajectory(path).q[-1:])[0]
+
+
+def test_generate_normal_target_ends_within_tolerance(env, db_file, tmp_path, monkeypatch):
+    cli = _hand_cli(env, db_file, monkeypatch)
+    target = np.asarray(env.db.condition[5], np.float64) + 0.01
+    out = tmp_path / "near.json"
+    argv = ["generate", "--db", str(db_file), "--target", *map(str, target), "--out", str(out)]
+    assert cli(argv) == 0
+    assert np.linalg.norm(_written_hand(env, out) - target) <= TOL_HAND
+
+
+def test_generate_unreachable_target_exits_2_with_the_miss(
+    env, db_file, tmp_path, capsys, monkeypatch
+):
+    cli = _hand_cli(env, db_file, monkeypatch)
+    out = tmp_path / "far.json"
+    argv = ["generate", "--db", str(db_file), "--target", "1.5", "-0.3", "1.4", "--out", str(out)]
+    capsys.readouterr()
+    assert cli(argv) == 2
+    msg = capsys.readouterr().out
+    assert msg.startswith("error: ") and msg.count("\n") == 1
+    assert "would miss it by" in msg and " mm" in msg and "nearest reachable point" in msg
+    assert not out.exists()
+    # --nearest: a motion whose hand ends within the tolerance of the reported nearest point
+    assert cli([*argv, "--nearest"]) == 0
+    printed = capsys.readouterr().out
+    assert "using it (--nearest)" in printed
+    from evojax_motion.export import read_trajectory
+
+    point = np.asarray(read_trajectory(out).meta["target"])
+    assert str([round(float(v), 4) for v in point]) in printed  # the point the output reports
+    assert np.linalg.norm(_written_hand(env, out) - point) <= TOL_HAND + TOL_ROUND
+
+
+def test_generate_miss_over_tolerance_exits_2(env, db_file, tmp_path, capsys, monkeypatch):
+    """A reachable target still misses a tolerance below the motion's own miss: exit 2."""
+    cli = _hand_cli(env, db_file, monkeypatch)
+    target = [f"{v:.4f}" for v in env.db.condition[5] + 0.01]
+    out = tmp_path / "tight.csv"
+    argv = ["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]
+    capsys.readouterr()
+    assert cli([*argv, "--tolerance", "1e-6"]) == 2
+    msg = capsys.readouterr().out
+    assert "the hand misses the target" in msg and "tolerance 1e-06 mm" in msg
+    assert not out.exists()
+    assert cli([*argv, "--tolerance", "0"]) == 2
+    assert "--tolerance: expected a number > 0 [mm]" in capsys.readouterr().out
+
+
+def test_projection_that_moves_the_hand_off_target_is_an_error(env, db_file, tmp_path):
+    """The reported case: a joint-limit projection far off (71.4 rad) and a 324 mm miss: an error
+    with the figures, not a note."""
+    import argparse
+
+    from online_support import hand_positions
+
+    from evojax_motion import online_cli
+
+    model = cli_session(env, db_file)[0]
+    motion = query(env, env.db.condition[5:6] + 0.01)
+    # move the written final posture until the hand is ~0.3 m off the target
+    q = np.array(motion.q)
+    q[0, -1] = np.clip(q[0, -1] + 0.6, env.robot.lower, env.robot.upper)
+    miss = np.linalg.norm(hand_positions(env.robot, q[0, -1:])[0] - motion.target[0])
+    assert miss > 0.05
+    bad = motion._replace(q=q, limit_excess=np.array([71.4], np.float32))
+    out = tmp_path / "bad.csv"
+    args = argparse.Namespace(out=str(out), tolerance=5.0)
+    with pytest.raises(online_cli.UserError) as err:
+        online_cli._write(args, "csv", model, bad, 0, {})
+    msg = str(err.value)
+    assert f"by {miss * 1e3:.1f} mm" in msg
+    assert "exceeded the joint limits by 71.4000 rad" in msg and "nothing written" in msg
+    assert not out.exists()
