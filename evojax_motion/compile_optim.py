@@ -92,7 +92,7 @@ from evojax_motion.errors import UserError
 from evojax_motion.linalg.cholesky import cholesky_solve as _cholesky_solve  # noqa: F401  # re-exported until the package layout move
 from evojax_motion.linalg.eigh2 import eigh_2x2 as _eigh_2x2  # noqa: F401  # re-exported until the package layout move
 from evojax_motion.linalg.reductions import sum_together
-from evojax_motion.objective import torque_cost
+from evojax_motion.objective import cost_from_torques
 from evojax_motion.precision import exact_matmuls
 from evojax_motion.solvers.base import Descent, HessianModel, SolverResult
 from evojax_motion.solvers.base import SolverResult as _Result  # noqa: F401  # re-exported until the package layout move
@@ -274,9 +274,11 @@ class Optimised(NamedTuple):
 
     q: (C, T, J) [rad]; coeffs: (C, J, K+1) weights of the K components and the constant;
     cost: (C,) eq. 5 torque cost of q (no penalty) [N^2 m^2 s]; bc_residual: (C,) max BC error
-    (rad, rad/s); within_limits: (C,) every sample inside [lower, upper] (+`LIMIT_TOL`);
-    finite: (C,) q and cost are finite; iterations: (C,) int32 iterations used (of the chosen
-    start); converged: (C,) stopping test met within the budget.
+    (rad, rad/s); within_limits: (C,) every sample inside [lower, upper] (+`LIMIT_TOL`; an
+    infinite limit is never violated); finite: (C,) q and cost are finite; iterations: (C,) int32
+    iterations used (of the chosen start); converged: (C,) stopping test met within the budget;
+    peak_torque [N m], peak_velocity [rad/s]: (C, J) largest |tau| and |qd| over the T samples
+    (the torques of ``cost``).
     """
 
     q: jnp.ndarray
@@ -287,6 +289,8 @@ class Optimised(NamedTuple):
     finite: jnp.ndarray
     iterations: jnp.ndarray
     converged: jnp.ndarray
+    peak_torque: jnp.ndarray
+    peak_velocity: jnp.ndarray
 
 
 class Problem(NamedTuple):
@@ -732,9 +736,12 @@ def optimise_prepared(
     def evaluate(zf, prob: Problem):
         z = zf.reshape(j, k)
         q = problem_trajectory(prob, z)
-        return q, torque_cost(dyn, grid, q, prob.duration)  # eq. 5 on the full grid
+        qd, qdd = derivatives(grid, q, prob.duration)
+        tau = jax.vmap(dyn.inverse)(q, qd, qdd)
+        cost = cost_from_torques(grid, tau, prob.duration)  # eq. 5 on the full grid
+        return q, cost, jnp.max(jnp.abs(tau), axis=0), jnp.max(jnp.abs(qd), axis=0)
 
-    q_all, cost_all = jax.vmap(evaluate)(res.z, probs)
+    q_all, cost_all, tau_all, qd_all = jax.vmap(evaluate)(res.z, probs)
     finite = jnp.isfinite(cost_all) & jnp.all(jnp.isfinite(q_all), axis=(1, 2))
     within = jnp.all((q_all >= lower - LIMIT_TOL) & (q_all <= upper + LIMIT_TOL), axis=(1, 2))
     results = SolverResult(
@@ -743,7 +750,7 @@ def optimise_prepared(
         iterations=res.iterations.reshape(n_s, c),
         converged=res.converged.reshape(n_s, c),
     )
-    q_all = q_all.reshape(n_s, c, *q_all.shape[1:])
+    q_all, tau_all, qd_all = (a.reshape(n_s, c, *a.shape[1:]) for a in (q_all, tau_all, qd_all))
     cost_all, finite, within = (a.reshape(n_s, c) for a in (cost_all, finite, within))
     # Best start: finite and within limits first, then the lowest penalised objective.
     rank_key = jnp.where(finite, results.f, jnp.inf) + jnp.where(finite & within, 0.0, 1e30)
@@ -764,6 +771,8 @@ def optimise_prepared(
         finite=pick(finite),
         iterations=pick(results.iterations),
         converged=pick(results.converged),
+        peak_torque=pick(tau_all),
+        peak_velocity=pick(qd_all),
     )
 
 
@@ -836,11 +845,27 @@ def checked_limits(lower, upper) -> tuple[np.ndarray, np.ndarray]:
 
 
 def validate_limits(lower, upper, n_joints: int, where: str = "joint limits") -> None:
-    """``lower``, ``upper``: finite ``(J,)`` arrays with ``lower < upper``; else `UserError`."""
+    """``lower``, ``upper``: ``(J,)`` arrays with ``lower < upper``, no NaN, ``lower`` < +inf and
+    ``upper`` > -inf; else `UserError`. ``-inf`` / ``+inf``: no limit on that side (a continuous
+    joint, `robot.Robot.lower`): the limit penalty and `Optimised.within_limits` never see it
+    violated."""
     lo, hi = np.asarray(lower), np.asarray(upper)
     if lo.shape != (n_joints,) or hi.shape != (n_joints,):
         raise UserError(
             f"{where}: expected lower and upper of shape ({n_joints},), got {lo.shape}, {hi.shape}"
         )
-    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo < hi).all()):
-        raise UserError(f"{where}: expected finite limits with lower < upper")
+    ok = (lo < hi) & (lo < np.inf) & (hi > -np.inf)  # False for NaN
+    if not ok.all():
+        raise UserError(
+            f"{where}: expected finite limits (or -inf / +inf: none) with lower < upper, got "
+            f"lower {lo.tolist()}, upper {hi.tolist()}"
+        )
+
+
+def validate_rate_limits(limit, n_joints: int, where: str) -> np.ndarray:
+    """``limit``: a ``(J,)`` array of values > 0 (inf: none; None: inf for every joint), e.g.
+    `robot.Robot.torque_limit`; as float64, else `UserError` naming ``where``."""
+    arr = np.full(n_joints, np.inf) if limit is None else np.asarray(limit, np.float64)
+    if arr.shape != (n_joints,) or not (arr > 0).all():  # False for NaN
+        raise UserError(f"{where}: expected {n_joints} values > 0 (inf: no limit), got {arr}")
+    return arr

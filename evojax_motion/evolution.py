@@ -3,7 +3,10 @@
 Genetic operator: every condition c of the fixed set (``conditions.py``) is compiled by the
 movement compiler via optimisation (eq. 3-5) from a basis of its neighbours (eq. 6) in the current
 database; neighbour search sees the human originals and the survivors alike. Offspring that are not
-finite, leave the joint ranges or miss the boundary conditions (eq. 2) are discarded (sec. 3.1, 5).
+finite, leave the joint ranges, exceed a torque or velocity limit (peak |tau| or |qd| over the T
+samples; `robot.Robot.torque_limit`, ``velocity_limit``) or miss the boundary conditions (eq. 2)
+are discarded (sec. 3.1, 5). An infinite limit (a continuous joint's range, a joint without torque
+or velocity limit) is never violated.
 Survivor selection (sec. 4.3): slot ``n_human + c`` keeps the cheaper of incumbent and offspring by
 the eq. 5 cost, a batched argmin; the human originals (slots ``0 .. n_human-1``) never change.
 
@@ -39,6 +42,7 @@ from evojax_motion.compile_optim import (
     cpu_fast_path,
     optimise_prepared,
     prepare_optimisation,
+    validate_rate_limits,
 )
 from evojax_motion.database import EVOLVED, Database, count_human
 from evojax_motion.dynamics import Dynamics
@@ -171,6 +175,8 @@ class GenerationStats(NamedTuple):
     n_replaced: jnp.ndarray
     n_rejected_nonfinite: jnp.ndarray
     n_rejected_limits: jnp.ndarray
+    n_rejected_torque: jnp.ndarray
+    n_rejected_velocity: jnp.ndarray
     n_rejected_bc: jnp.ndarray
     n_valid: jnp.ndarray
     n_short: jnp.ndarray
@@ -298,7 +304,7 @@ def search_neighbours(db: Database, conditions, basis_settings: BasisSettings):
 def make_generation_step(*args, **kwargs):
     """One generation as one jitted function ``step(db, conditions, generation)``; arguments
     as `generation_stages` (``dyn, grid, lower, upper, n_human, basis_settings, optim_settings,
-    settings``).
+    settings``, keywords ``torque_limit``, ``velocity_limit``).
 
     ``db``: ``Database`` of capacity ``n_human + m`` (`init_evolved_slots`); ``conditions``:
     ``Conditions`` (m); ``generation``: int32 scalar, the index this step produces (1, 2, ...);
@@ -312,9 +318,10 @@ def make_generation_step(*args, **kwargs):
       [N m] (``objective.torque_sum``), averaged over the filled evolved slots;
     - ``human_deviation_deg``: RMS joint-angle difference [deg] between each filled evolved slot
       and its condition's human-only interpolation, averaged over the slots;
-    - ``n_replaced``: slots whose offspring won; ``n_rejected_*``: offspring discarded as
-      non-finite, outside the joint ranges (but finite), missing the boundary conditions (but
-      finite and within range); ``n_valid``: filled evolved slots; ``n_short``: conditions with
+    - ``n_replaced``: slots whose offspring won; ``n_rejected_*``: offspring discarded, each
+      counted once, in this order: non-finite, outside the joint ranges, over a torque limit,
+      over a velocity limit, missing the boundary conditions (each: but passing the tests
+      before); ``n_valid``: filled evolved slots; ``n_short``: conditions with
       fewer than k neighbours within the radius;
     - ``bc_residual_max`` [rad], ``bc_velocity_residual_max`` [rad/s]: largest start/end
       joint-angle (velocity) error among the finite offspring;
@@ -342,15 +349,23 @@ def generation_stages(
     basis_settings: BasisSettings,
     optim_settings: OptimSettings,
     settings: EvolutionSettings,
+    *,
+    torque_limit=None,
+    velocity_limit=None,
 ):
     """``(prepare, finish, compiler_options)``: the un-jitted generation step in two stages,
     ``prepare(db, conditions) -> Staged`` (neighbours, PCA, `compile_optim.prepare_optimisation`)
     and ``finish(db, conditions, generation, staged) -> (db, GenerationStats)`` (the optimiser,
     survivor selection, metrics), and the options of the top-level jits that must run them.
     ``finish(db, conditions, generation, prepare(db, conditions))`` is `generation_step`'s
-    step."""
+    step. ``lower``, ``upper``: ``(J,)`` joint limits [rad] (-inf / +inf: none);
+    ``torque_limit`` [N m], ``velocity_limit`` [rad/s]: ``(J,)`` (inf: none; None: none at all),
+    e.g. `robot.Robot.torque_limit`."""
     dyn, options = cpu_fast_path(dyn, optim_settings)
     lower, upper = checked_limits(lower, upper)
+    n_joints = lower.shape[0]
+    tau_max = validate_rate_limits(torque_limit, n_joints, "torque limits")
+    qd_max = validate_rate_limits(velocity_limit, n_joints, "velocity limits")
     n_components = optim_settings.n_components
 
     def prepare(db: Database, conditions) -> Staged:
@@ -365,9 +380,12 @@ def generation_stages(
         )
         finite = off.finite & jnp.isfinite(off.cost)
         in_range = finite & off.within_limits
+        dtype = off.peak_torque.dtype
+        under_torque = in_range & jnp.all(off.peak_torque <= jnp.asarray(tau_max, dtype), axis=-1)
+        feasible = under_torque & jnp.all(off.peak_velocity <= jnp.asarray(qd_max, dtype), axis=-1)
         pos_err, vel_err = boundary_errors(grid, off.q, conditions.boundary)
         meets_bc = (pos_err <= settings.bc_tolerance) & (vel_err <= settings.bc_velocity_tolerance)
-        accept = in_range & meets_bc
+        accept = feasible & meets_bc
 
         sl = slice(n_human, None)
         sel = select_survivors(
@@ -388,7 +406,9 @@ def generation_stages(
             n_replaced=jnp.sum(sel.replaced).astype(jnp.int32),
             n_rejected_nonfinite=jnp.sum(~finite).astype(jnp.int32),
             n_rejected_limits=jnp.sum(finite & ~in_range).astype(jnp.int32),
-            n_rejected_bc=jnp.sum(in_range & ~accept).astype(jnp.int32),
+            n_rejected_torque=jnp.sum(in_range & ~under_torque).astype(jnp.int32),
+            n_rejected_velocity=jnp.sum(under_torque & ~feasible).astype(jnp.int32),
+            n_rejected_bc=jnp.sum(feasible & ~accept).astype(jnp.int32),
             n_valid=jnp.sum(sel.valid).astype(jnp.int32),
             n_short=jnp.sum(staged.short).astype(jnp.int32),
             bc_residual_max=jnp.max(jnp.where(finite, pos_err, 0.0)),

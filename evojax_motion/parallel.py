@@ -166,14 +166,10 @@ def pad_database(db: Database, extra: int) -> Database:
 
 # How the per-device statistics combine into those of the whole condition set. Every field of
 # `GenerationStats` needs a rule: a new statistic without one fails at import, not silently.
-_SUMS = (
-    "n_replaced",
-    "n_rejected_nonfinite",
-    "n_rejected_limits",
-    "n_rejected_bc",
-    "n_valid",
-    "n_short",
-)
+# Counts are the fields named ``n_*``; the offspring rejections (``n_rejected_*``) exclude each
+# other, so the accepted offspring are the rest.
+_SUMS = tuple(f for f in GenerationStats._fields if f.startswith("n_"))
+_REJECTIONS = tuple(f for f in _SUMS if f.startswith("n_rejected_"))
 _MAXIMA = ("bc_residual_max", "bc_velocity_residual_max")
 _MEAN_OVER_ACCEPTED = ("offspring_cost_mean",)
 _MEAN_OVER_VALID = ("db_cost_mean", "torque_sum_mean", "human_deviation_deg")
@@ -196,7 +192,7 @@ def combine_stats(stats: GenerationStats, n_local: int, axis: str = CONDITION_AX
     out = {name: jax.lax.psum(getattr(stats, name), axis) for name in _SUMS}
     out.update({name: jax.lax.pmax(getattr(stats, name), axis) for name in _MAXIMA})
     out.update({name: jax.lax.pmean(getattr(stats, name), axis) for name in _MEAN_OVER_ALL})
-    accepted = n_local - stats.n_rejected_nonfinite - stats.n_rejected_limits - stats.n_rejected_bc
+    accepted = n_local - sum(getattr(stats, name) for name in _REJECTIONS)
     counts = {name: accepted for name in _MEAN_OVER_ACCEPTED}
     counts.update({name: stats.n_valid for name in _MEAN_OVER_VALID})
     for name, count in counts.items():
@@ -234,7 +230,7 @@ def _placed(fn, mesh: Mesh, options: dict | None):
     return jax.jit(fn, in_shardings=replicated, out_shardings=replicated, compiler_options=options)
 
 
-def one_device_stages(*args, devices: int | Sequence | None = None):
+def one_device_stages(*args, devices: int | Sequence | None = None, **limits):
     """``(prepare, finish, compiler_options)``: `evolution.generation_stages` (same arguments)
     jitted and placed on the one device that ``devices`` names (`resolve_devices`), as
     `sharded_generation_step` places the one-device step; ``finish(db, conditions, generation,
@@ -245,7 +241,7 @@ def one_device_stages(*args, devices: int | Sequence | None = None):
             f"parallel.devices: the generation's two stages run on one device, got "
             f"{mesh.devices.size}"
         )
-    prepare, finish, options = generation_stages(*args)
+    prepare, finish, options = generation_stages(*args, **limits)
     return _placed(prepare, mesh, options), _placed(finish, mesh, options), options
 
 
@@ -264,13 +260,17 @@ def sharded_generation_step(
     optim_settings,
     settings,
     devices: int | Sequence | None = None,
+    *,
+    torque_limit=None,
+    velocity_limit=None,
 ):
     """``(step, compiler_options)``: `evolution.make_generation_step` with the conditions sharded
     over ``devices``, and the compiler options its jit carries (`compile_optim.cpu_fast_path`;
     needed again by whoever compiles the step another way, e.g. `compile_cache.compile_traced`).
 
-    Same arguments plus ``devices`` (`resolve_devices`: ``None`` = all, an int = the first n, or a
-    sequence); same contract: a jitted ``step(db, conditions, generation) -> (db, GenerationStats)``
+    Same arguments (``torque_limit``, ``velocity_limit`` as keywords) plus ``devices``
+    (`resolve_devices`: ``None`` = all, an int = the first n, or a sequence); same contract: a
+    jitted ``step(db, conditions, generation) -> (db, GenerationStats)``
     with ``db`` of capacity ``n_human + m`` and ``conditions`` of any m >= 1 (the padding is
     internal). Inputs may be numpy arrays: they are replicated to every device (in a multi-host run
     every process must pass the same values). Outputs are replicated, so ``np.asarray`` works on
@@ -286,9 +286,10 @@ def sharded_generation_step(
     replicated = NamedSharding(mesh, P())
     fixed = (dyn, grid, lower, upper)
     stage_settings = (basis_settings, optim_settings, settings)
+    limits = {"torque_limit": torque_limit, "velocity_limit": velocity_limit}
     # The step's program options (CPU fast path) go on the top-level jit that runs or inlines it.
     if n_dev == 1:
-        plain, options = generation_step(*fixed, n_human, *stage_settings)
+        plain, options = generation_step(*fixed, n_human, *stage_settings, **limits)
         return _placed(plain, mesh, options), options
     _, options = cpu_fast_path(dyn, optim_settings)  # the inner steps are built when traced
 
@@ -298,7 +299,7 @@ def sharded_generation_step(
         m_pad = padded.target.shape[0]
         full = pad_database(db, m_pad - m)
         n_full, n_local = n_human + m_pad, m_pad // n_dev
-        inner, _ = generation_step(*fixed, n_full, *stage_settings)
+        inner, _ = generation_step(*fixed, n_full, *stage_settings, **limits)
 
         def local(full, slots, cond, generation):
             copies = slots._replace(condition=jnp.full_like(slots.condition, jnp.nan))

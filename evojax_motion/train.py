@@ -56,6 +56,7 @@ METRIC_FIELDS = (
     "seconds",  # wall time from the previous generation's result (or the loop's start) to this
     # one's: the generation's execution, overlapped with writing the previous one's files
     "finished_at",  # Unix time [s] at its end (time to first generation, gaps on resume)
+    # then `evolution.GenerationStats`' fields, in order (not imported here: no JAX at import)
     "offspring_cost_mean",
     "db_cost_mean",
     "torque_sum_mean",
@@ -63,6 +64,8 @@ METRIC_FIELDS = (
     "n_replaced",
     "n_rejected_nonfinite",
     "n_rejected_limits",
+    "n_rejected_torque",
+    "n_rejected_velocity",
     "n_rejected_bc",
     "n_valid",
     "n_short",
@@ -454,8 +457,9 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         from tqdm.auto import tqdm
 
         from evojax_motion import checkpoint as ck
-        from evojax_motion.database import save_database
+        from evojax_motion.database import human_mask, save_database
         from evojax_motion.evolution import with_search_candidates
+        from evojax_motion.feasibility import count_over_limits, over_limits_line
 
         restored, problems, manager = None, [], None
         if resuming:
@@ -472,6 +476,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             setup, cue = (None, None) if early is None else (early.setup, early.start)
             db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, setup, cue)
             start, metrics = 0, []
+            _log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
     except BaseException:
         if early is not None:
             early.wait()  # its thread ends before the error reaches the user
@@ -643,11 +648,12 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     n_human = count_human(db)
     grid = make_time_grid(db.q.shape[1])
     fixed = (dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, cfg.evolution)
+    limits = {"torque_limit": robot.torque_limit, "velocity_limit": robot.velocity_limit}
     generation = np.asarray(1, np.int32)  # the generation index is traced
     if not stays_on_device(cfg):  # sharded over several devices
-        step_fn, _ = sharded_generation_step(*fixed, devices=cfg.parallel.devices)
+        step_fn, _ = sharded_generation_step(*fixed, devices=cfg.parallel.devices, **limits)
         return step_fn.lower(db, conditions, generation).compile()
-    prepare, finish, options = one_device_stages(*fixed, devices=cfg.parallel.devices)
+    prepare, finish, options = one_device_stages(*fixed, devices=cfg.parallel.devices, **limits)
     parts = {"n_human": n_human, **cache_parts(cfg, robot)}
     lowered = lower_traced(prepare, (db, conditions), {"program": "prepare", **parts}, options)
     first = Background(lowered.compile)

@@ -155,6 +155,30 @@ def test_unpad_stats_removes_exactly_the_padding():
     assert unpad_stats(stats, 8, 0) is stats
 
 
+def test_combine_stats_weights_by_offspring_past_every_rejection():
+    """Two devices' statistics (a mapped axis named like the mesh's): counts add up, and the
+    mean over accepted offspring weighs each device by ``n_local`` less all its rejections
+    (torque and velocity ones included)."""
+    import jax
+
+    from evojax_motion.evolution import GenerationStats
+    from evojax_motion.parallel import CONDITION_AXIS, combine_stats
+
+    n_local = 10
+    a = _stats(n_rejected_torque=np.int32(3), n_rejected_velocity=np.int32(2),
+               offspring_cost_mean=np.float32(1.0))  # fmt: skip
+    b = _stats(n_rejected_torque=np.int32(0), n_rejected_velocity=np.int32(0),
+               offspring_cost_mean=np.float32(4.0))  # fmt: skip
+    both = GenerationStats(*(np.stack([x, y]) for x, y in zip(a, b)))
+    out = jax.vmap(lambda s: combine_stats(s, n_local), axis_name=CONDITION_AXIS)(both)
+    assert int(out.n_rejected_torque[0]) == 3 and int(out.n_rejected_velocity[0]) == 2
+    other = sum(float(getattr(a, f)) for f in ("n_rejected_nonfinite", "n_rejected_limits",
+                                                "n_rejected_bc"))  # fmt: skip
+    acc_a, acc_b = n_local - other - 5, n_local - other
+    expected = (1.0 * acc_a + 4.0 * acc_b) / (acc_a + acc_b)
+    np.testing.assert_allclose(float(out.offspring_cost_mean[0]), expected, rtol=1e-6)
+
+
 # ------------------------------------------ sharded vs one device, 4 forced CPU devices
 
 

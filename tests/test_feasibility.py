@@ -1,0 +1,219 @@
+"""Feasibility in the offline evolution: joint, velocity and torque limits (continuous joints have
+none), the rejection counts of the generation step and the human rows over a limit."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evojax_motion.compile_optim import LIMIT_TOL, checked_limits
+from evojax_motion.database import make_database
+from evojax_motion.errors import UserError
+
+ASSETS = Path(__file__).resolve().parent / "assets"
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+GEN3 = SHARED / "robots" / "kinova_gen3" / "gen3.xml"
+REPO = Path(__file__).resolve().parents[1]
+
+N_HUMAN, T_SAMPLES, M_COND = 40, 24, 5
+REL_TOL = 1e-4  # float32 torques / velocities recomputed here against those of the step
+BAD_LIMITS = r"^joint limits: expected finite limits \(or -inf / \+inf: none\) with lower < upper"
+MIN_VALID_FRACTION = 0.9  # of the Gen3 run's conditions filled after its generations
+
+
+def peaks(dyn, grid, q, duration):
+    """Peak |qd| and |tau| of each row, computed here: ``(n, J)`` x 2 (numpy)."""
+    import jax
+
+    from evojax_motion.objective import trajectory_torques
+    from evojax_motion.timegrid import derivatives
+
+    def one(q1, d):
+        qd, _ = derivatives(grid, q1, d)
+        return abs(qd).max(axis=0), abs(trajectory_torques(dyn, grid, q1, d)).max(axis=0)
+
+    pqd, ptau = jax.jit(jax.vmap(one))(np.asarray(q), np.asarray(duration))
+    return np.asarray(pqd), np.asarray(ptau)
+
+
+def small_setup(robot, seed: int = 0):
+    """Synthetic human reaches (warped minimum jerk from rest plus a bump) to postures drawn in
+    ``robot.posture_box`` near rest, their conditions and the pieces of a generation step."""
+    import jax
+
+    from evojax_motion.basis import BasisSettings
+    from evojax_motion.compile_optim import OptimSettings
+    from evojax_motion.conditions import make_conditions
+    from evojax_motion.dynamics import make_dynamics
+    from evojax_motion.evolution import EvolutionSettings
+    from evojax_motion.objective import torque_cost
+    from evojax_motion.timegrid import make_time_grid
+
+    dyn = make_dynamics(robot, "rnea")
+    grid = make_time_grid(T_SAMPLES)
+    rng = np.random.default_rng(seed)
+    lo, hi = robot.posture_box(0.05)
+    span = hi - lo
+    qf = np.clip(robot.rest + rng.normal(0, 0.15, (N_HUMAN, robot.n_joints)) * span, lo, hi)
+    s = np.asarray(grid.s, np.float64)[None, :, None]
+    w = s + rng.uniform(-0.4, 0.4, (N_HUMAN, 1, 1)) * s * (1 - s)
+    mj = 10 * w**3 - 15 * w**4 + 6 * w**5
+    bump = np.sin(np.pi * s) ** 2 * rng.normal(0, 0.05, (N_HUMAN, 1, robot.n_joints)) * span
+    q = np.clip(robot.rest + (qf - robot.rest)[:, None, :] * mj + bump, lo, hi).astype(np.float32)
+    dur = rng.uniform(0.6, 0.9, N_HUMAN).astype(np.float32)
+    hand = np.asarray(jax.vmap(lambda x: dyn.site_pose(x)[0])(q[:, -1]))
+    cost = jax.jit(jax.vmap(lambda a, d: torque_cost(dyn, grid, a, d)))(q, dur)
+    humans = make_database(q, dur, hand, cost=np.asarray(cost))
+    spread = float(np.max(np.ptp(hand, axis=0)))
+    basis = BasisSettings(radius=max(0.15, spread / 2), neighbours=6)
+    evo = EvolutionSettings(conditions=M_COND, generations=2, min_neighbours=3)
+    cond = make_conditions(humans, dyn, robot, evo, basis, grid, jax.random.key(3))
+    cond = jax.tree_util.tree_map(np.asarray, cond)
+    optim = OptimSettings(method="adam", max_iters=10)
+    return dict(robot=robot, dyn=dyn, grid=grid, humans=humans, basis=basis, evo=evo,
+                cond=cond, optim=optim)  # fmt: skip
+
+
+def run_generations(s, generations: int = 2, **limits):
+    """``(db, [stats])`` after ``generations`` steps from empty evolved slots."""
+    import jax
+
+    from evojax_motion.evolution import init_evolved_slots, make_generation_step
+
+    r = s["robot"]
+    step = make_generation_step(
+        s["dyn"], s["grid"], r.lower, r.upper, N_HUMAN, s["basis"], s["optim"], s["evo"], **limits
+    )
+    db = init_evolved_slots(s["humans"], s["cond"])
+    all_stats = []
+    for g in range(1, generations + 1):
+        db, stats = step(db, s["cond"], np.int32(g))
+        all_stats.append(jax.tree_util.tree_map(np.asarray, stats))
+    return jax.tree_util.tree_map(np.asarray, db), all_stats
+
+
+def test_infinite_limits_mean_none_and_bad_ones_are_refused():
+    lo, hi = checked_limits([-np.inf, -1.0], [np.inf, 1.0])
+    assert np.isneginf(lo[0]) and np.isposinf(hi[0])
+    bad = [
+        ([np.nan, -1.0], [1.0, 1.0]),
+        ([1.0, -1.0], [0.5, 1.0]),
+        ([np.inf, -1.0], [np.inf, 1.0]),
+        ([-np.inf, -1.0], [-np.inf, 1.0]),
+    ]
+    for lower, upper in bad:
+        with pytest.raises(UserError, match=BAD_LIMITS):
+            checked_limits(lower, upper)
+
+
+@pytest.fixture(scope="module")
+def continuous():
+    from evojax_motion.robot import load_robot
+
+    robot = load_robot(ASSETS / "continuous_arm.xml")
+    assert robot.continuous.any() and not robot.continuous.all()
+    return small_setup(robot, seed=1)
+
+
+def test_generation_with_continuous_joints_respects_the_finite_limits(continuous):
+    s = continuous
+    r = s["robot"]
+    db, stats = run_generations(s)
+    last = stats[-1]
+    assert int(last.n_valid) > 0, last
+    assert np.isfinite(float(last.db_cost_mean))
+    ev = slice(N_HUMAN, None)
+    q = db.q[ev][db.valid[ev]]
+    finite = ~r.continuous
+    assert np.all(q[..., finite] >= r.lower[finite] - LIMIT_TOL)
+    assert np.all(q[..., finite] <= r.upper[finite] + LIMIT_TOL)
+    assert np.all(np.isfinite(q))
+
+
+@pytest.fixture(scope="module")
+def mahru():
+    from evojax_motion.robot import load_robot
+
+    return small_setup(load_robot("mahru_arm"), seed=0)
+
+
+def test_low_torque_and_velocity_limits_reject_offspring(mahru):
+    """Limits at half the human rows' peaks: some offspring are rejected for each, and every
+    accepted row is within all limits (torques and velocities recomputed here)."""
+    s = mahru
+    humans = s["humans"]
+    pqd, ptau = peaks(s["dyn"], s["grid"], humans.q, humans.duration)
+    _, free_stats = run_generations(s, generations=1)
+    assert int(free_stats[0].n_rejected_torque) == int(free_stats[0].n_rejected_velocity) == 0
+    n_free_valid = int(free_stats[0].n_valid)
+    assert n_free_valid > 0
+
+    tau_limit = 0.5 * np.median(ptau, axis=0)
+    db, stats = run_generations(s, generations=1, torque_limit=tau_limit)
+    assert int(stats[0].n_rejected_torque) > 0, stats[0]
+    qd_limit = 0.5 * np.median(pqd, axis=0)
+    db_v, stats_v = run_generations(s, generations=1, velocity_limit=qd_limit)
+    assert int(stats_v[0].n_rejected_velocity) > 0, stats_v[0]
+    for st in (stats[0], stats_v[0], free_stats[0]):  # the rejections exclude each other
+        rejected = sum(int(getattr(st, f)) for f in st._fields if f.startswith("n_rejected_"))
+        assert rejected <= M_COND
+
+    ev = slice(N_HUMAN, None)
+    for d, tl, vl in ((db, tau_limit, np.inf), (db_v, np.inf, qd_limit)):
+        keep = d.valid[ev]
+        if keep.any():
+            v, t = peaks(s["dyn"], s["grid"], d.q[ev][keep], d.duration[ev][keep])
+            assert np.all(t <= tl * (1 + REL_TOL)) and np.all(v <= vl * (1 + REL_TOL))
+
+
+def test_count_over_limits_of_human_rows(mahru):
+    from evojax_motion.feasibility import count_over_limits, over_limits_line
+
+    s = mahru
+    humans, robot = s["humans"], s["robot"]
+    pqd, ptau = peaks(s["dyn"], s["grid"], humans.q, humans.duration)
+    counts = count_over_limits(humans, robot, s["dyn"])
+    assert counts.rows == N_HUMAN
+    assert counts.torque == int(np.any(ptau > robot.torque_limit, axis=1).sum())
+    assert counts.velocity == int(np.any(pqd > robot.velocity_limit, axis=1).sum())
+    assert counts.joint == 0  # the synthetic rows are clipped into the box
+
+    class Low:  # the same robot with a torque limit below most peaks
+        lower, upper, velocity_limit = robot.lower, robot.upper, robot.velocity_limit
+        torque_limit = np.median(ptau, axis=0)
+
+    low = count_over_limits(humans, Low, s["dyn"])
+    expected = int(np.any(ptau > Low.torque_limit, axis=1).sum())
+    assert low.torque == expected > 0 and low.any >= expected
+    assert f"{low.any} of {N_HUMAN}" in over_limits_line(low)
+
+
+def test_metric_fields_are_the_generation_stats():
+    from evojax_motion.evolution import GenerationStats
+    from evojax_motion.train import METRIC_FIELDS
+
+    assert METRIC_FIELDS[3:] == GenerationStats._fields
+
+
+@pytest.mark.slow
+def test_train_on_the_unedited_gen3(tmp_path):
+    if not GEN3.is_file():
+        pytest.skip(f"shared robot model absent: {GEN3.name} (shared/robots/kinova_gen3)")
+    out = tmp_path / "run"
+    cmd = [
+        sys.executable, "-m", "evojax_motion.cli", "train", str(REPO / "configs" / "tiny.yaml"),
+        "--out", str(out), "--quiet",
+        "--set", f"robot.mjcf={GEN3}",
+        "--set", "evolution.conditions=40", "--set", "evolution.generations=3",
+    ]  # fmt: skip
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=1800)
+    assert res.returncode == 0, res.stderr[-2000:]
+    rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines() if x.strip()]
+    assert len(rows) == 3
+    assert rows[-1]["n_valid"] >= MIN_VALID_FRACTION * 40, rows[-1]
+    assert "over a limit of the robot" in res.stderr
