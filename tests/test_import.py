@@ -519,6 +519,17 @@ def test_asf_amc_reach_while_walking_imports_as_standing(tmp_path):
         theta,
         phi,
     )
+    # a root segment as the reference: the pelvis (lhipjoint) carries the shoulder rigidly here,
+    # so the targets are the shoulder reference's; a name the recording lacks is the reason
+    hip = import_trials(
+        _params(format="asf-amc", paths=(str(tmp_path),), rate=100.0, reference="lhipjoint")
+    )
+    assert len(hip.imported) == 2, format_report(hip)
+    np.testing.assert_allclose(hip.db.q, res.db.q, atol=TOL_SAME_Q)
+    nope = import_trials(
+        _params(format="asf-amc", paths=(str(tmp_path / "07_02.amc"),), rate=100.0, reference="x")
+    )
+    assert "--reference x: no such marker in the trial" in nope.reports[0].reason
     # the lab frame: the walk is in the shoulder's target
     lab = import_trials(
         _params(format="asf-amc", paths=(str(tmp_path / "07_02.amc"),), rate=100.0, reference="lab")
