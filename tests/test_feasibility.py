@@ -217,3 +217,28 @@ def test_train_on_the_unedited_gen3(tmp_path):
     assert len(rows) == 3
     assert rows[-1]["n_valid"] >= MIN_VALID_FRACTION * 40, rows[-1]
     assert "over a limit of the robot" in res.stderr
+
+
+@pytest.mark.slow
+def test_tiny_run_keeps_evolved_rows_within_every_limit(tmp_path):
+    """configs/tiny.yaml trained: every valid evolved row of db_final is inside the joint ranges,
+    and its peak |qd| and |tau| (recomputed here with the run's dynamics) within the limits."""
+    from evojax_motion.config import load_config
+    from evojax_motion.database import human_mask, load_database
+    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.train import run_training
+    from evojax_motion.workflow import make_robot_dynamics
+
+    cfg = load_config(REPO / "configs" / "tiny.yaml")
+    run_training(cfg, tmp_path / "run", progress=False)
+    db, _ = load_database(tmp_path / "run" / "db_final.npz")
+    robot, dyn = make_robot_dynamics(cfg)
+    rows = np.asarray(db.valid) & ~human_mask(db)
+    assert rows.any()
+    q, dur = np.asarray(db.q)[rows], np.asarray(db.duration)[rows]
+    assert np.all((q >= robot.lower - LIMIT_TOL) & (q <= robot.upper + LIMIT_TOL))
+    pqd, ptau = peaks(dyn, make_time_grid(q.shape[1]), q, dur)
+    assert np.all(pqd <= robot.velocity_limit * (1 + REL_TOL)), pqd.max(axis=0)
+    assert np.all(ptau <= robot.torque_limit * (1 + REL_TOL)), ptau.max(axis=0)
+    metrics = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
+    assert all("n_rejected_torque" in json.loads(x) for x in metrics)
