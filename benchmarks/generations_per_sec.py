@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402  (one definition for all benchmarks)
-from make_report import cpu_label  # noqa: E402
+from make_report import machine_label  # noqa: E402
 from result_files import write_result  # noqa: E402
 
 from evojax_motion import evolution  # noqa: E402
@@ -338,7 +338,7 @@ def first_generation_times(
 def markdown(result: dict) -> str:
     m = result["machine"]
     lines = [
-        f"Machine: {m['device_kind']} ({m['platform']}, {cpu_label(m)}), jax {m['jax']}, "
+        f"Machine: {m['device_kind']} ({m['platform']}, {machine_label(m)}), jax {m['jax']}, "
         f"{m['date']}. Command: `{m['command']}`",
     ]
     if m.get("xla_flags"):
