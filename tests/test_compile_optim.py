@@ -88,24 +88,42 @@ TOL_FUSED = 1e-10  # relative, float64: the fused search gradient vs autodiff (s
 TOL_FUSED_RUN = 1e-4  # relative cost, float32: an optimiser's result, fused gradient vs autodiff
 # rad: start trajectories (q_ls) of the paper's reduced problems built in float32 (LAPACK, and the
 # accelerators' Jacobi SVDs) vs float64 (100 conditions of the catching config's generation 1).
-# Measured 2.4e-4 on both paths (1.5e-4 on the same problems' bases from an H100); with the end
+# Measured 2.4e-4 on both paths (1.5e-4 on the same problems' bases from an H100); on the first
+# 100 of `PAPER_CONDITIONS`, SSE4.2 / AVX2 / default (= AVX2 there) on a 2-core AMD EPYC:
+# 3.4e-4 / 1.6e-4 / 1.6e-4, both paths, masks equal in each; with the end
 # slopes taken from the samples themselves instead of their differences to the end sample, the
 # masks differ, and on the H100's bases q_ls was 0.32 rad off (CPU build) and 0.77 rad (H100).
 TOL_PAPER_START = 1e-3
-# Relative gap to float64 SLSQP of the catching config's compiler (BFGS, 30 iterations) on the
-# same 100 paper problems, 75th and 95th percentiles. Measured in this test (2 CPU cores): 0.0073 %
-# and 1.03 % (0.0074 % and 1.07 % with the subspace model's sums regrouped); when a step that
-# no length passed restarted BFGS's model as a multiple of the identity (the code before
-# CHANGELOG.md's "BFGS keeps its model"): 0.0225 % and 1.49 %. The 75th
-# percentile is the one that tells them apart; the 95th bounds the tail (local minima; on the
-# benchmark's first 100 of 300 conditions it read 1.76 %, so a draw of problems moves it).
-TOL_PAPER_P75 = 1.5e-4
-TOL_PAPER_P95 = 2e-2
-# Of those 100 problems, how many may end outside their joint limits (rejected, as the evolution
-# rejects such offspring): problem 35 stops at the budget on the edge of a limit, and whether its
-# worst sample is inside depends on the CPU's rounding: 4.4e-4 rad outside on one 2-core AMD EPYC
-# machine (1.7e-3 with the model kept but the sums not yet regrouped), inside on the CI machine.
-TOL_PAPER_OUTSIDE = 2
+# The catching config's compiler (BFGS, 30 iterations) on the paper's problems of generation 1:
+# `PAPER_CONDITIONS` of them, the first `PAPER_SLSQP` also solved by float64 SLSQP. The problems
+# themselves differ from one CPU to another: float32 PCA rounding turns the components by ~1e-3
+# rad, and the reduced problems' BC solve amplifies that (start trajectories 0.05-0.8 rad apart,
+# free directions different in 63 of 100), so the optima differ by ~10 % (median) between CPUs
+# and each of these problems can fall into another local minimum, on either side. A percentile of
+# 100 gaps in the dense part of their distribution moves with that: the 75th, once asserted here
+# <= 1.5e-4, read 0.0074 % on one 2-core EPYC, 0.022 % on an AVX-512 EPYC and 0.030 % in a draw
+# under SSE4.2, while with BFGS's model restarted after a rejected step (the code before
+# CHANGELOG.md's "BFGS keeps its model") it read 0.010-0.23 % over the same draws. Hence
+# quantities that such switches cannot flip. Values below, "SSE4.2 / AVX2 / default (= AVX2
+# on that CPU, bit-identical) / AVX", measured with `--xla_cpu_max_isa` on one 2-core AMD EPYC
+# (AVX2); "restart": the same runs with the model restarted.
+PAPER_CONDITIONS = 300
+PAPER_SLSQP = 100
+# Budget: how many of the `PAPER_CONDITIONS` stop at the iteration budget unconverged: 51 / 45 /
+# 45 / 49; restart 74 / 77 / 77 / 80. (Over 100 problems the same count read 11-23, restart
+# 18-33: 300 it takes to tell them apart. Of those stopped, the same optimiser given 300
+# iterations ends more than 0.03 % lower on 27 / 24 / 24 / 28, restart 57 / 55 / 55 / 56.)
+TOL_PAPER_AT_BUDGET = 62
+# Relative gap to float64 SLSQP over the first `PAPER_SLSQP`: its median (typical problems end
+# at the float64 optimum; -1.9e-5 / -2.4e-6 / -2.4e-6 / -4.8e-5, and within +-4.8e-5 in all 9
+# draws of 100 measured, restart included) and how many end more than 1 % above it (other local
+# minima, SLSQP's on the other side as often: 3 / 6 / 6 / 7, 3-11 in the 9 draws; restart 4-16).
+TOL_PAPER_MEDIAN = 2e-4
+TOL_PAPER_ABOVE_1PCT = 15
+# Of the `PAPER_CONDITIONS`, how many may end outside their joint limits (rejected, as the
+# evolution rejects such offspring): a problem stopped at the budget on the edge of a limit is
+# inside or 4e-4 rad outside depending on the CPU's rounding. 2 / 2 / 2 / 2.
+TOL_PAPER_OUTSIDE = 5
 
 
 def synthetic_demos(robot, dyn, rng):
@@ -718,15 +736,16 @@ def test_fused_search_gradient_matches_autodiff_and_finite_differences(setup, x6
 
 @pytest.fixture(scope="module")
 def paper():
-    """The catching config's generation 1 at 100 conditions, as the benchmark builds it:
-    ``(cfg, robot, dyn, db, conds)``."""
+    """The catching config's generation 1 at `PAPER_CONDITIONS` conditions, as the benchmark
+    builds it: ``(cfg, robot, dyn, db, conds)``."""
     from benchmarks.generations_per_sec import build
     from evojax_motion.config import load_config
 
-    return build(load_config("configs/catch_ball.yaml", []), 100)
+    return build(load_config("configs/catch_ball.yaml", []), PAPER_CONDITIONS)
 
 
 @pytest.mark.slow
+@pytest.mark.isa_sensitive
 def test_paper_problems_built_in_float32_match_float64(paper, monkeypatch):
     """The optimisation compiler's BC rule compares end slopes with `BC_LEAK` ~1e-4; on the paper's
     problems (real bases, T = 100) its float32 build, on either code path, sets up the float64
@@ -752,16 +771,32 @@ def test_paper_problems_built_in_float32_match_float64(paper, monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.isa_sensitive
 def test_paper_config_reaches_float64_slsqp_on_paper_problems(paper):
-    """The catching config's compiler (BFGS within its iteration budget) on the 100 paper
-    problems, by the benchmark's own comparison (`optimality_gap`): three in four end within
-    `TOL_PAPER_P75` of float64 SLSQP's cost, 95 in 100 within `TOL_PAPER_P95`, all within
-    their limits but `TOL_PAPER_OUTSIDE`. How many converge within the budget is what it measures:
-    it fails when the model is thrown away after a rejected step (the code before
-    CHANGELOG.md's "BFGS keeps its model")."""
-    from benchmarks.generations_per_sec import optimality_gap
+    """The catching config's compiler on the paper problems (see `PAPER_CONDITIONS`): all but
+    `TOL_PAPER_AT_BUDGET` of them converge within the iteration budget, the median gap to float64
+    SLSQP is within `TOL_PAPER_MEDIAN`, at most `TOL_PAPER_ABOVE_1PCT` of `PAPER_SLSQP` end more
+    than 1 % above SLSQP, all within their limits but `TOL_PAPER_OUTSIDE`. The budget count is
+    what it measures: it fails when the model is thrown away after a rejected step."""
+    from benchmarks.generations_per_sec import generation1_problems
 
-    gap = optimality_gap(*paper, 100)
-    assert gap["compared"] >= 100 - TOL_PAPER_OUTSIDE
-    assert gap["p75_gap"] <= TOL_PAPER_P75
-    assert gap["p95_gap"] <= TOL_PAPER_P95
+    cfg, robot, dyn, db, conds = paper
+    grid, basis, boundary = generation1_problems(cfg, robot, dyn, db, conds, PAPER_CONDITIONS)
+
+    out = make_optimisation_compiler(dyn, grid, robot.lower, robot.upper, cfg.compiler)(
+        basis, boundary
+    )
+    ok = np.asarray(out.within_limits) & np.asarray(out.finite)
+    at_budget = int(np.sum(~np.asarray(out.converged)))
+    first = jax.tree_util.tree_map(lambda a: a[:PAPER_SLSQP], (basis, boundary))
+    ref = solve_reference(robot, grid, *first, cfg.compiler, gradient="jax")
+    cost = torque_costs_f64(robot, grid, np.asarray(out.q)[:PAPER_SLSQP], first[1].duration)
+    gap = ((cost - ref.cost) / ref.cost)[ok[:PAPER_SLSQP]]
+    print(
+        f"outside {np.sum(~ok)}, at the budget {at_budget} of {PAPER_CONDITIONS}; gap to "
+        f"SLSQP: median {np.median(gap):.2e}, above 1 % {np.sum(gap > 0.01)} of {gap.size}"
+    )
+    assert np.sum(~ok) <= TOL_PAPER_OUTSIDE
+    assert at_budget <= TOL_PAPER_AT_BUDGET
+    assert abs(np.median(gap)) <= TOL_PAPER_MEDIAN
+    assert np.sum(gap > 0.01) <= TOL_PAPER_ABOVE_1PCT
