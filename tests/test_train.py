@@ -303,6 +303,7 @@ def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypa
     one = make_generation_step(
         dyn, make_time_grid(db.q.shape[1]), robot.lower, robot.upper, count_human(db),
         cfg.basis, cfg.compiler, cfg.evolution,
+        torque_limit=robot.torque_limit, velocity_limit=robot.velocity_limit,
     )  # fmt: skip
     db_b = db
     for g in (1, 2):  # each from the same database: a cost's last bit can decide a survivor
