@@ -151,7 +151,13 @@ class OptimSettings:
       updates in between).
     - ``learning_rate``: Adam's step size [rad RMS of q per step].
     - ``limit_margin`` [rad]: the penalty acts on ``[lower + margin, upper - margin]``.
-    - ``limit_penalty`` [cost units / rad^2 / s]: weight of the quadratic limit penalty.
+    - ``limit_penalty`` [cost units / rad^2 / s]: weight of the quadratic limit penalty (the
+      velocity and torque penalties' too, per (rad/s)^2 s and (N m)^2 s).
+    - ``limit_headroom`` [fraction]: where the robot has velocity or torque limits
+      (`robot.Robot.velocity_limit`, ``torque_limit``, handed to `optimise_prepared`), the
+      penalty also acts on ``|qd|`` and ``|tau|`` above ``(1 - limit_headroom) * limit``.
+      Without it 271-296 of the paper configuration's 300 offspring a generation went over the
+      Mahru arm's velocity limits and were discarded (CHANGELOG.md).
     - ``n_starts``: starts per condition (1 = z = 0 only); ``start_scale``: spread of the others
       [rad RMS of q]; ``seed``: the fixed key of those starts (deterministic).
     - ``max_free_per_joint``: free null-space directions kept per joint (static size of z: J times
@@ -188,6 +194,7 @@ class OptimSettings:
     learning_rate: float = 0.1
     limit_margin: float = 0.02
     limit_penalty: float = 1e4
+    limit_headroom: float = 0.05
     max_free_per_joint: int = 3
     search_stride: int = 1
     hessian_every: int = 1
@@ -221,6 +228,12 @@ class OptimSettings:
             self.limit_margin,
         )
         _check(self.limit_penalty >= 0, "limit_penalty", "a number >= 0", self.limit_penalty)
+        _check(
+            0 <= self.limit_headroom < 1,
+            "limit_headroom",
+            "a fraction in [0, 1)",
+            self.limit_headroom,
+        )
         _check(
             isinstance(self.max_free_per_joint, int)
             and 1 <= self.max_free_per_joint <= self.n_components,
@@ -435,6 +448,14 @@ def limit_penalty(w, q, duration, lo, hi, weight) -> jnp.ndarray:
     return weight * duration * jnp.sum(jnp.asarray(w, q.dtype) * jnp.sum(viol, axis=-1))
 
 
+def rate_bound(limit, margin: float, dtype) -> jnp.ndarray | None:
+    """A velocity or torque penalty's bound ``(J,)`` [rad/s or N m]: ``limit (J,)`` (inf: none)
+    less the fraction ``margin`` of it, or None (no penalty) when every joint's is inf."""
+    if limit is None or not np.isfinite(np.asarray(limit)).any():
+        return None
+    return jnp.asarray((1.0 - margin) * np.asarray(limit, np.float64), dtype)
+
+
 def fused_products() -> bool:
     """Whether the search objective forms q, qd, qdd at its nodes by elementwise products and a
     sum (accelerators) or by an einsum (CPU, where `joint_lists` does not apply). Read at trace
@@ -481,30 +502,35 @@ def joint_lists(dyn: Dynamics) -> bool:
     return not fused_products() and dyn.form == "scalar"
 
 
-def penalty_model(z, problems: Problem, lo, hi, weight):
+def penalty_model(z, problems: Problem, lo, hi, weight, vmax=None):
     """Gradient ``(B, J F)`` and Hessian ``(B, J F, J F)`` of `limit_penalty` at the search
-    nodes for a batch of problems at ``z (B, J F)``, in closed form (q is linear in z, the
-    penalty a sum of squared violations): per joint, ``2 weight D sum_m w_m v_m d_m`` and
+    nodes for a batch of problems at ``z (B, J F)``, in closed form (q and qd are linear in z,
+    the penalty a sum of squared violations): per joint, ``2 weight D sum_m w_m v_m d_m`` and
     ``2 weight D sum_m w_m [q_m outside] d_m d_m^T``, ``d_m (F,)`` the joint's directions at
-    node m, ``v_m`` its signed violation; joints do not mix (block diagonal). The BFGS method's
-    exact part of its model (`solvers.quasi_newton.StructuredBFGS`'s ``known``).
+    node m, ``v_m`` its signed violation; joints do not mix (block diagonal). With ``vmax (J,)``
+    the same for the velocity penalty on ``[-vmax, vmax]`` (`rate_bound`), qd's
+    directions in place of q's. The BFGS method's exact part of its model
+    (`solvers.quasi_newton.StructuredBFGS`'s ``known``).
 
     Elementwise products summed over the nodes in one reduction (`sum_together`): as einsums,
     on 2 CPU cores, the Hessian's blocks alone were a dot of ~0.35 ms a pass at paper scale (in
     a profiler trace), the whole model 800 against 257 us a call now."""
-    dirs = problems.node_dirs[:, 0]  # (B, M, J, F)
-    b, _, j, f = dirs.shape
+    b, _, _, j, f = problems.node_dirs.shape
     zf = z.reshape(b, 1, j, f)
-    q = problems.node_ls[:, 0] + sum(zf[..., k] * dirs[..., k] for k in range(f))  # (B, M, J)
-    viol = jnp.maximum(q - hi, 0.0) - jnp.maximum(lo - q, 0.0)
     c = ((2.0 * weight * problems.duration)[:, None] * problems.node_w)[:, :, None]  # (B, M, 1)
-    c_outside = jnp.where(viol != 0.0, c, 0.0)
     pairs = [(k, m) for k in range(f) for m in range(k, f)]
-    sums = sum_together(
-        [c * viol * dirs[..., k] for k in range(f)]
-        + [c_outside * dirs[..., k] * dirs[..., m] for k, m in pairs],
-        axis=1,
-    )  # each (B, J)
+    bounds = [(0, lo, hi)] if vmax is None else [(0, lo, hi), (1, -vmax, vmax)]
+    terms: list[list[jnp.ndarray]] = [[] for _ in range(f + len(pairs))]
+    for order, low, high in bounds:
+        dirs = problems.node_dirs[:, order]  # (B, M, J, F)
+        x = problems.node_ls[:, order] + sum(zf[..., k] * dirs[..., k] for k in range(f))
+        viol = jnp.maximum(x - high, 0.0) - jnp.maximum(low - x, 0.0)  # (B, M, J)
+        c_outside = jnp.where(viol != 0.0, c, 0.0)
+        for k in range(f):
+            terms[k].append(c * viol * dirs[..., k])
+        for i, (k, m) in enumerate(pairs):
+            terms[f + i].append(c_outside * dirs[..., k] * dirs[..., m])
+    sums = sum_together([functools.reduce(jnp.add, t) for t in terms], axis=1)  # each (B, J)
     g = jnp.stack(sums[:f], axis=-1)  # (B, J, F)
     pair_of = np.array([[pairs.index((min(k, m), max(k, m))) for m in range(f)] for k in range(f)])
     blocks = jnp.stack(sums[f:], axis=-1)[..., pair_of]  # (B, J, F, F)
@@ -531,9 +557,11 @@ def gauss_newton_model(dyn: Dynamics, problems: Problem, z, every: int):
     return gauss_newton_matrix(residual, z, sub)
 
 
-def make_objective(dyn: Dynamics, lo, hi, weight):
+def make_objective(dyn: Dynamics, lo, hi, weight, vmax=None, taumax=None):
     """``f(z, problem) -> (penalised objective, torque cost)`` for one condition, both by the
     problem's quadrature nodes (`search_nodes`; stride 1: the time grid's, eq. 5 exactly).
+    The penalty: `limit_penalty` on q in ``[lo, hi]`` and, with ``vmax (J,)`` / ``taumax
+    (J,)``, on qd in ``[-vmax, vmax]`` / tau in ``[-taumax, taumax]`` (`rate_bound`).
 
     q, qd and qdd are linear in z, so one evaluation is a product with the precomputed node
     arrays of `Problem` (`node_states`) and the inverse dynamics at the M nodes (no derivative
@@ -546,8 +574,13 @@ def make_objective(dyn: Dynamics, lo, hi, weight):
         tau = jax.vmap(dyn.inverse)(q, qd, qdd)
         w = problem.node_w.astype(tau.dtype)
         cost = 0.5 * problem.duration * jnp.sum(w * jnp.sum(tau**2, -1))
-        q_nodes = jnp.stack(q, axis=-1) if lists else q
-        return cost + limit_penalty(w, q_nodes, problem.duration, lo, hi, weight), cost
+        q_nodes, qd_nodes = (jnp.stack(x, axis=-1) if lists else x for x in (q, qd))
+        penalty = limit_penalty(w, q_nodes, problem.duration, lo, hi, weight)
+        if vmax is not None:
+            penalty += limit_penalty(w, qd_nodes, problem.duration, -vmax, vmax, weight)
+        if taumax is not None:
+            penalty += limit_penalty(w, tau, problem.duration, -taumax, taumax, weight)
+        return cost + penalty, cost
 
     return objective
 
@@ -563,7 +596,7 @@ def fused_search_gradient(dyn: Dynamics) -> bool:
     return dyn.torques is not None
 
 
-def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
+def make_search_value(dyn: Dynamics, lo, hi, weight, method: str, vmax=None, taumax=None):
     """``f(z (J, F), problem) -> penalised objective``: `make_objective`'s first output, for the
     optimiser of ``method`` (`METHODS`).
 
@@ -583,7 +616,7 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
     (2 CPU cores; CHANGELOG.md). Otherwise ``f`` is `make_objective`'s first output.
     """
     if method == "newton" or not fused_search_gradient(dyn):
-        objective = make_objective(dyn, lo, hi, weight)
+        objective = make_objective(dyn, lo, hi, weight, vmax, taumax)
         return lambda z, problem: objective(z, problem)[0]
     torques = dyn.torques
     assert torques is not None  # fused_search_gradient
@@ -591,7 +624,12 @@ def make_search_value(dyn: Dynamics, lo, hi, weight, method: str):
     def node_parts(q, qd, qdd):
         """Torque and penalty integrands at one node: q, qd, qdd sequences of J scalars."""
         viol = sum(squared_violation(q[k], lo[k], hi[k]) for k in range(len(q)))
-        return 0.5 * sum(t * t for t in torques(q, qd, qdd)), weight * viol
+        if vmax is not None:
+            viol += sum(squared_violation(qd[k], -vmax[k], vmax[k]) for k in range(len(qd)))
+        tau = torques(q, qd, qdd)
+        if taumax is not None:
+            viol += sum(squared_violation(t, -taumax[k], taumax[k]) for k, t in enumerate(tau))
+        return 0.5 * sum(t * t for t in tau), weight * viol
 
     def node_value(q, qd, qdd):
         torque, penalty = node_parts(q, qd, qdd)
@@ -706,18 +744,23 @@ def optimise_prepared(
     lower,
     upper,
     settings: OptimSettings,
+    velocity_limit=None,
+    torque_limit=None,
 ) -> Optimised:
     """The second half of `compile_optimisation`, pure and un-jitted: the optimiser on the
     problems of ``prep`` (`prepare_optimisation` with the same ``dyn``, ``grid`` and
     ``settings``), each result's eq. 5 cost on the full grid and the best start per
-    condition."""
+    condition. ``velocity_limit`` [rad/s], ``torque_limit`` [N m]: ``(J,)`` (inf: none) or
+    None, penalised beyond ``1 - settings.limit_headroom`` of them (`rate_bound`); static."""
     settings = settings.resolved()
     dtype = prep.z0.dtype
     lower = jnp.asarray(lower, dtype)
     upper = jnp.asarray(upper, dtype)
     lo, hi = lower + settings.limit_margin, upper - settings.limit_margin
     weight = jnp.asarray(settings.limit_penalty, dtype)
-    search_value = make_search_value(dyn, lo, hi, weight, settings.method)
+    vmax = rate_bound(velocity_limit, settings.limit_headroom, dtype)
+    taumax = rate_bound(torque_limit, settings.limit_headroom, dtype)
+    search_value = make_search_value(dyn, lo, hi, weight, settings.method, vmax, taumax)
     c, j = prep.coeffs_ls.shape[:2]
     k = prep.null.shape[-1]
     n_s = settings.n_starts
@@ -728,7 +771,9 @@ def optimise_prepared(
             prob = jax.tree_util.tree_map(lambda a: a[i], chunk)
             return search_value(zf.reshape(j, k), prob)
 
-        known = functools.partial(penalty_model, problems=chunk, lo=lo, hi=hi, weight=weight)
+        known = functools.partial(
+            penalty_model, problems=chunk, lo=lo, hi=hi, weight=weight, vmax=vmax
+        )
         return run_solver(settings, fun, z0, free, known, initial)
 
     res = optimise_in_chunks(solve, probs, prep.z0, prep.free, settings.max_batch, prep.initial)
@@ -784,6 +829,8 @@ def compile_optimisation(
     lower,
     upper,
     settings: OptimSettings,
+    velocity_limit=None,
+    torque_limit=None,
 ) -> Optimised:
     """The movement compiler via optimisation (paper sec. 2.2), pure and un-jitted:
     `optimise_prepared` of `prepare_optimisation`.
@@ -794,7 +841,9 @@ def compile_optimisation(
     `make_optimisation_compiler` for a jitted version, or call this inside a larger jit.
     """
     prep = prepare_optimisation(basis, boundary, dyn, grid, settings)
-    return optimise_prepared(prep, boundary, dyn, grid, lower, upper, settings)
+    return optimise_prepared(
+        prep, boundary, dyn, grid, lower, upper, settings, velocity_limit, torque_limit
+    )
 
 
 def cpu_fast_path(dyn: Dynamics, settings: OptimSettings) -> tuple[Dynamics, dict | None]:
@@ -819,6 +868,8 @@ def make_optimisation_compiler(
     upper,
     settings: OptimSettings | None = None,
     fast_path: bool = True,
+    velocity_limit=None,
+    torque_limit=None,
 ):
     """A jitted ``compile(basis, boundary) -> Optimised`` (see `compile_optimisation`).
 
@@ -827,10 +878,16 @@ def make_optimisation_compiler(
     """
     settings = OptimSettings() if settings is None else settings
     lower, upper = checked_limits(lower, upper)
+    if velocity_limit is not None:
+        velocity_limit = validate_rate_limits(velocity_limit, lower.shape[0], "velocity limits")
+    if torque_limit is not None:
+        torque_limit = validate_rate_limits(torque_limit, lower.shape[0], "torque limits")
     dyn, options = cpu_fast_path(dyn, settings) if fast_path else (dyn, None)
 
     def compile_batch(basis: Basis, boundary: Boundary) -> Optimised:
-        return compile_optimisation(basis, boundary, dyn, grid, lower, upper, settings)
+        return compile_optimisation(
+            basis, boundary, dyn, grid, lower, upper, settings, velocity_limit, torque_limit
+        )
 
     return jax.jit(exact_matmuls(compile_batch), compiler_options=options)
 

@@ -12,7 +12,8 @@ with an explicit PRNG key, from where the robot will work, and reused by every g
   directions; candidates the IK cannot reach within ``ik_tolerance`` are rejected. Neighbour means
   are taken on one branch (the database keeps continuous joints on the rest branch,
   `database.on_robot_branch`), and a continuous joint of ``qf`` is kept within pi of the start;
-- ``q0 = robot.rest``, ``qd0 = qdf = 0`` (rest to rest, like the demonstrations);
+- ``q0``: the neighbours' mean start posture (the synthetic demonstrations all start at the
+  robot's rest; recorded people start where they stood), ``qd0 = qdf = 0``;
 - duration: the neighbours' mean duration, or ``EvolutionSettings.duration``.
 
 Each condition also carries its human-only reference: the movement compiler via interpolation
@@ -163,8 +164,11 @@ def condition_programs(
         else:
             dur = jnp.full((m,), settings.duration, q.dtype)
         zeros = jnp.zeros((m, j), q.dtype)
-        rest = jnp.broadcast_to(jnp.asarray(robot.rest, q.dtype), (m, j))
-        boundary = Boundary(q0=rest, qf=qf, qd0=zeros, qdf=zeros, duration=dur)
+        # The neighbours' mean start, as an offset from the nearest one's: exactly the shared
+        # start where they have one (synthetic demonstrations start at the robot's rest).
+        start = q[nb.index, 0]  # (m, k, J)
+        q0 = start[:, 0] + _masked_mean(start - start[:, :1], nb.mask)
+        boundary = Boundary(q0=q0, qf=qf, qd0=zeros, qdf=zeros, duration=dur)
         ref_basis = pca_basis(q, duration, nb, INTERP_COMPONENTS)
         ref = compile_interpolation(ref_basis, boundary, grid, n_components=INTERP_COMPONENTS)
         f32 = jnp.float32  # fixed dtypes: checkpoints restore into `conditions_template`

@@ -376,8 +376,9 @@ def generation_stages(
 
     def finish(db: Database, conditions, generation, staged: Staged):
         off = optimise_prepared(
-            staged.prepared, conditions.boundary, dyn, grid, lower, upper, optim_settings
-        )
+            staged.prepared, conditions.boundary, dyn, grid, lower, upper, optim_settings,
+            qd_max, tau_max,
+        )  # fmt: skip
         finite = off.finite & jnp.isfinite(off.cost)
         in_range = finite & off.within_limits
         dtype = off.peak_torque.dtype

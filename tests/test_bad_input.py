@@ -207,7 +207,8 @@ POSITIVE = [
 NON_NEGATIVE = [
     "demos.duration_noise", "demos.asymmetry_std", "demos.curvature_std",
     "demos.limit_margin_deg", "basis.w_rot", "compiler.tol", "compiler.limit_margin",
-    "compiler.limit_penalty", "compiler.start_scale", "train.plot_condition",
+    "compiler.limit_penalty", "compiler.limit_headroom", "compiler.start_scale",
+    "train.plot_condition",
 ]  # fmt: skip
 
 
@@ -744,11 +745,18 @@ def test_absurd_sizes_are_refused_at_once_without_allocating(tmp_path, setting):
     assert not (tmp_path / "run").exists()
 
 
+# The run's peak is read from VmHWM, its own address space's high-water mark: ru_maxrss is kept
+# across exec on Linux, so a child started by vfork (Python's subprocess) from a pytest worker
+# reported the worker's peak (2.8-3.6 GiB where the run's own was 1.1 GiB).
 _PEAK_SCRIPT = """
-import json, resource, sys
+import json, re, resource, sys
 from evojax_motion.cli import main
 status = main(sys.argv[1:])
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+try:
+    with open("/proc/self/status") as f:
+        peak = int(re.search(r"VmHWM:\\s*(\\d+) kB", f.read()).group(1))
+except OSError:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 print(json.dumps({"status": status, "peak_kib": peak}))
 """
 ESTIMATE_WITHIN = 2.0  # the estimate is this close to the measured peak (either way)

@@ -636,21 +636,35 @@ def _f64_problems(s, n=2, stride=1):
     return problems, jnp.asarray(z)
 
 
-def test_penalty_model_matches_autodiff(setup, x64):
+TORQUE_BOUND = 1.0  # [N m] below the test arm's gravity torques: the torque penalty acts
+
+
+def _active_velocity_bound(problems):
+    """A velocity bound ``(J,)`` that half the problems' start speeds cross: the penalty acts."""
+    return jnp.asarray(0.5 * np.abs(np.asarray(problems.node_ls[:, 1])).max(axis=(0, 1)))
+
+
+@pytest.mark.parametrize("velocity", [False, True])
+def test_penalty_model_matches_autodiff(setup, x64, velocity):
     """`penalty_model` (closed form, batched) against ``jax.grad`` and ``jax.hessian`` of
-    `limit_penalty` at the nodes, with limits tight enough that samples cross them."""
+    `limit_penalty` at the nodes, with limits tight enough that samples cross them: on q alone,
+    and on q and qd (a velocity bound)."""
     s = setup
     problems, z = _f64_problems(s)
     lo, hi = jnp.asarray(s["lower"] + 0.3), jnp.asarray(s["upper"] - 0.3)
+    vmax = _active_velocity_bound(problems) if velocity else None
     b, j, f = z.shape
     assert f >= 2  # the blocks' off-diagonal entries are checked too
 
     def penalty(zf, prob):
-        q = prob.node_ls[0] + jnp.einsum("jf,mjf->mj", zf.reshape(j, f), prob.node_dirs[0])
-        return limit_penalty(prob.node_w, q, prob.duration, lo, hi, 1e3)
+        x = prob.node_ls + jnp.einsum("jf,amjf->amj", zf.reshape(j, f), prob.node_dirs)
+        out = limit_penalty(prob.node_w, x[0], prob.duration, lo, hi, 1e3)
+        if velocity:
+            out += limit_penalty(prob.node_w, x[1], prob.duration, -vmax, vmax, 1e3)
+        return out
 
     zf = z.reshape(b, j * f)
-    g, h = (np.asarray(a) for a in penalty_model(zf, problems, lo, hi, 1e3))
+    g, h = (np.asarray(a) for a in penalty_model(zf, problems, lo, hi, 1e3, vmax))
     g_ref = np.asarray(jax.vmap(jax.grad(penalty))(zf, problems))
     h_ref = np.asarray(jax.vmap(jax.hessian(penalty))(zf, problems))
     assert np.abs(h_ref).max() > 0  # the penalty acts
@@ -712,21 +726,26 @@ def test_joint_lists_give_the_array_objective(setup, form, monkeypatch):
 def test_fused_search_gradient_matches_autodiff_and_finite_differences(setup, x64):
     """`make_search_value` with the CPU's fused gradient (one reduction over the nodes, the scalar
     RNEA layout's unstacked torques, a custom VJP) against autodiff of `make_objective` (vector
-    layout) and central differences, in float64, with limits tight enough that the penalty is
-    active; its value alone (the trial steps) too."""
+    layout) and central differences, in float64, with joint, velocity and torque limits tight
+    enough that the penalty is active; its value alone (the trial steps) too."""
     s = setup
     problems, z = _f64_problems(s)
     lo, hi = jnp.asarray(s["lower"] + 0.2), jnp.asarray(s["upper"] - 0.2)
+    vmax = _active_velocity_bound(problems)
+    taumax = jnp.full(vmax.shape, TORQUE_BOUND)
     scalar = make_dynamics(s["robot"], "rnea", jnp.float64, "scalar")
     assert fused_search_gradient(scalar)  # the test suite runs on CPU
     vector = make_dynamics(s["robot"], "rnea", jnp.float64, "vector")
     assert not fused_search_gradient(vector)
-    fused = make_search_value(scalar, lo, hi, 1e3, "bfgs")
-    objective = make_objective(vector, lo, hi, 1e3)
+    fused = make_search_value(scalar, lo, hi, 1e3, "bfgs", vmax, taumax)
+    objective = make_objective(vector, lo, hi, 1e3, vmax, taumax)
+    no_torque_bound = make_objective(vector, lo, hi, 1e3, vmax)
     reference = jax.jit(jax.vmap(jax.value_and_grad(lambda zz, p: objective(zz, p)[0])))
     f_ref, g_ref = map(np.asarray, reference(z, problems))
     cost_ref = np.asarray(jax.vmap(lambda zz, p: objective(zz, p)[1])(z, problems))
     assert np.all(f_ref > 1.01 * cost_ref)  # the penalty is active
+    f_free = np.asarray(jax.vmap(lambda zz, p: no_torque_bound(zz, p)[0])(z, problems))
+    assert np.all(f_ref > f_free)  # the torque bound's part of it too
     f, g = map(np.asarray, jax.jit(jax.vmap(jax.value_and_grad(fused)))(z, problems))
     np.testing.assert_allclose(f, f_ref, rtol=TOL_FUSED)
     np.testing.assert_allclose(g, g_ref, rtol=0, atol=TOL_FUSED * np.abs(g_ref).max())

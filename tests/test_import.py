@@ -617,25 +617,23 @@ def test_reach_real_config_names_the_imported_database():
 
 @pytest.mark.slow
 def test_training_on_the_imported_sample_lowers_the_cost(tmp_path):
-    """configs/reach_real.yaml on the shipped sample, shortened: the evolution's mean eq. 5 cost
-    falls from generation 1 to the last (the run completes on real human data). T = 32 keeps the
-    compile time small."""
+    """configs/reach_real.yaml on the shipped sample, shortened: the run completes on real human
+    data, a quarter of the conditions or more get a motion within the robot's limits, and
+    every slot filled in generation 1 ends at the same or a lower eq. 5 cost, some lower (the
+    mean over filled slots may rise as harder conditions fill). T = 32 keeps the compile time
+    small."""
     from evojax_motion.config import load_config
     from evojax_motion.train import run_training
 
     demos = tmp_path / "demos.npz"
     argv = ["--format", "vicon-csv", "--out", str(demos), "--quiet", "--samples", "32"]
     assert _run([*argv, "--chunk", "8", str(SAMPLE)]) == EXIT_OK
-    cfg = load_config(
-        REACH_CONFIG,
-        [
-            f"demos_file={demos}",
-            "evolution.conditions=8",
-            "evolution.generations=3",
-            "compiler.max_iters=40",
-            "train.plots=false",
-        ],
-    )
+    m = 16
+    sets = [f"demos_file={demos}", f"evolution.conditions={m}", "evolution.generations=3"]
+    cfg = load_config(REACH_CONFIG, [*sets, "train.plots=false"])
     summary = run_training(cfg, tmp_path / "run", progress=False)
-    assert summary["n_valid"] > 0
-    assert summary["db_cost_last"] < summary["db_cost_gen1"]
+    assert summary["n_valid"] >= m // 4  # measured 7 of 16: the rest stay over a limit
+    gen1, final = (load_database(tmp_path / "run" / f)[0] for f in ("db_gen1.npz", "db_final.npz"))
+    filled = np.asarray(gen1.valid)[-m:]
+    before, after = np.asarray(gen1.cost)[-m:][filled], np.asarray(final.cost)[-m:][filled]
+    assert filled.any() and np.all(after <= before) and np.any(after < before)

@@ -59,19 +59,7 @@ def _inside_limits(robot, q) -> None:
     assert np.all(np.abs(mean - robot.rest[robot.continuous]) <= np.pi)
 
 
-# The movement optimiser still refuses the infinite limits of continuous joints: strict, so
-# that this test reports once it accepts them.
-OPTIMISER_NEEDS_FINITE_LIMITS = pytest.mark.xfail(
-    raises=AssertionError,
-    strict=True,
-    reason="train: the movement optimiser (compile_optim.validate_limits) expects finite "
-    "limits; Gen3's joints 1, 3, 5 and 7 are continuous",
-)
-
-
-@pytest.mark.parametrize(
-    "name", [pytest.param("gen3", marks=OPTIMISER_NEEDS_FINITE_LIMITS), "xarm7_nohand"]
-)
+@pytest.mark.parametrize("name", ["gen3", "xarm7_nohand"])
 def test_demos_and_train_with_only_the_model_file(tmp_path, name, capsys):
     config = _config(tmp_path, name)
     robot = load_robot(ROBOTS / ARMS[name][0])
