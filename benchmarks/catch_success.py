@@ -7,10 +7,11 @@ condition (the region the databases were built on) moved by up to ``AIM_JITTER``
 release velocity follows from the ballistic closed form (gravity of the robot model). The same
 throws go to every database.
 
-Each throw is planned online (`catching.make_catcher`, one throw per call so that the planning
+Each throw is planned online (`online.catching.make_catcher`, one throw per call so that the
+planning
 time per throw is the latency; wall time after the compile) and executed by the tracking
 controller of `simulate` with the ball in flight. Per database (human rows only,
-`database.humans_only`; the learned one of ``--train-dir``):
+`motion.database.humans_only`; the learned one of ``--train-dir``):
 
 - reachable throws: the ball's path crosses the reachable set (`CatchPlan.passes_region`);
   unreachable ones are counted apart; infeasible plans: reachable, but no catch in time or no
@@ -47,15 +48,15 @@ sys.path.insert(0, str(ROOT))
 from dynamics_throughput import machine_info  # noqa: E402
 from result_files import machine_line, write_result  # noqa: E402
 
-from evojax_motion.catching import CatchSettings, make_catcher  # noqa: E402
-from evojax_motion.database import Database, humans_only  # noqa: E402
-from evojax_motion.online import (  # noqa: E402
+from evojax_motion.linalg.precision import exact_matmuls  # noqa: E402
+from evojax_motion.motion.database import Database, humans_only  # noqa: E402
+from evojax_motion.online.catching import CatchSettings, make_catcher  # noqa: E402
+from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
     joint_limits_f32,
     online_database,
 )
-from evojax_motion.precision import exact_matmuls  # noqa: E402
-from evojax_motion.simulate import (  # noqa: E402
+from evojax_motion.online.simulate import (  # noqa: E402
     Ball,
     Plan,
     SimSettings,
@@ -109,7 +110,7 @@ def evaluate_database(
 ) -> dict:
     """Plan, simulate and summarise the throws ``p0, v0 (N, 3)`` against ``db`` (numpy rows).
 
-    ``model``: an `online.OnlineModel` (robot, dyn, grid, basis_settings, settings);
+    ``model``: an `online.generation.OnlineModel` (robot, dyn, grid, basis_settings, settings);
     ``compiler``: `config.CompilerSettings` of the optimisation reference (None: skipped).
     """
     robot = model.robot
@@ -177,7 +178,7 @@ def evaluate_database(
 
 def optimise_subset(model, dev_db, rows, compiler, k: int) -> dict:
     """The optimisation compiler on the first ``k`` planned throws' basis and BCs."""
-    from evojax_motion.compile_optim import make_optimisation_compiler
+    from evojax_motion.compiler.optimisation import make_optimisation_compiler
 
     use = [r for r in rows if r["planned"]][:k]
     robot = model.robot
@@ -281,9 +282,9 @@ def _loadavg() -> tuple[float, ...]:
 
 
 def main(argv=None) -> dict:
-    from evojax_motion.compile_cache import enable_compile_cache
-    from evojax_motion.config import load_config
-    from evojax_motion.online import load_online_model
+    from evojax_motion.online.generation import load_online_model
+    from evojax_motion.run.cache import enable_compile_cache
+    from evojax_motion.settings import load_config
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--train-dir", required=True, help="finished training run (the learned db)")

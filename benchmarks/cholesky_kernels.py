@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from dynamics_throughput import machine_info  # noqa: E402
 from result_files import machine_line, write_result  # noqa: E402
 
-from evojax_motion.compile_optim import _cholesky_solve  # noqa: E402
+from evojax_motion.compiler.optimisation import _cholesky_solve  # noqa: E402
 
 BLOCKS = ((32, 1), (64, 2), (128, 4))  # problems per program, warps per program
 

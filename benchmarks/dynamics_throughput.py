@@ -43,9 +43,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from evojax_motion.dynamics import BACKENDS, make_dynamics  # noqa: E402
-from evojax_motion.dynamics_rnea import FORMS, default_form, make_rnea  # noqa: E402
-from evojax_motion.robot import load_robot  # noqa: E402
+from evojax_motion.model.dynamics import BACKENDS, make_dynamics  # noqa: E402
+from evojax_motion.model.rnea import FORMS, default_form, make_rnea  # noqa: E402
+from evojax_motion.model.robot import load_robot  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 N_CHECK = 1000  # states checked against C MuJoCo

@@ -53,19 +53,19 @@ from dynamics_throughput import machine_info  # noqa: E402  (one definition for 
 from make_report import machine_label  # noqa: E402
 from result_files import write_result  # noqa: E402
 
-from evojax_motion import evolution  # noqa: E402
-from evojax_motion.basis import pca_basis, select_neighbours, select_neighbours_among  # noqa: E402
-from evojax_motion.compile_optim import make_optimisation_compiler  # noqa: E402
-from evojax_motion.config import config_from_dict, config_to_dict, load_config  # noqa: E402
-from evojax_motion.database import count_human  # noqa: E402
-from evojax_motion.evolution import make_generation_step  # noqa: E402
-from evojax_motion.timegrid import make_time_grid  # noqa: E402
-from evojax_motion.train import (  # noqa: E402
+from evojax_motion.compiler.basis import pca_basis, select_neighbours, select_neighbours_among  # noqa: E402
+from evojax_motion.compiler.optimisation import make_optimisation_compiler  # noqa: E402
+from evojax_motion.evolution import step as evolution  # noqa: E402
+from evojax_motion.evolution.step import make_generation_step  # noqa: E402
+from evojax_motion.motion.database import count_human  # noqa: E402
+from evojax_motion.motion.timegrid import make_time_grid  # noqa: E402
+from evojax_motion.run.training import (  # noqa: E402
     compile_generation_step,
     generation_inputs,
     initial_state,
 )
-from evojax_motion.workflow import make_robot_dynamics  # noqa: E402
+from evojax_motion.run.workflow import make_robot_dynamics  # noqa: E402
+from evojax_motion.settings import config_from_dict, config_to_dict, load_config  # noqa: E402
 
 
 def peak_memory_bytes() -> int:
@@ -85,7 +85,8 @@ def build(cfg, conditions: int):
 
 def exact_lists(cfg, db, conds, valid: list) -> list[float] | None:
     """Per generation, the fraction of conditions whose candidate lists vouched for their
-    neighbours in the database it read (`basis.select_neighbours_among`); the step searches the
+    neighbours in the database it read (`compiler.basis.select_neighbours_among`); the step
+    searches the
     whole database in a generation where one does not. None without lists."""
     if conds.candidates is None:
         return None
@@ -111,9 +112,9 @@ def run_generations(compiled, db, conds, first: int, n: int):
 
 
 def compile_one_program(cfg, robot, dyn, db, conds):
-    """The generation step as one XLA program (`evolution.make_generation_step`, as the sharded
+    """The generation step as one XLA program (`evolution.step.make_generation_step`, as the sharded
     step runs it on each device), compiled for ``db`` and ``conds``; `train` compiles two on one
-    device (`train.compile_generation_step`)."""
+    device (`run.training.compile_generation_step`)."""
     grid = make_time_grid(db.q.shape[1])
     step = make_generation_step(dyn, grid, robot.lower, robot.upper, count_human(db),
                                 cfg.basis, cfg.compiler, cfg.evolution)  # fmt: skip
@@ -344,7 +345,8 @@ def markdown(result: dict) -> str:
     if m.get("xla_flags"):
         lines[0] += f" XLA_FLAGS: `{m['xla_flags']}`."
     if result.get("one_program"):
-        lines[0] += (" The step compiled as one XLA program (`evolution.make_generation_step`), "
+        lines[0] += (" The step compiled as one XLA program "
+                     "(`evolution.step.make_generation_step`), "
                      "not as `train`'s two.")  # fmt: skip
     if result["sweep"]:
         lines += [

@@ -1,6 +1,6 @@
 """Full import of the UE ADL motion-capture subset (``../shared/data/ue_adl``) for several robots.
 
-Runs `evojax_motion.mocap.import_trials` with its defaults (no ``--weights``, no
+Runs `evojax_motion.demonstrations.mocap.import_trials` with its defaults (no ``--weights``, no
 ``--keypoints``) on all 10 subjects x 2 tasks x 5 trials of the right-arm reaching data, once per
 robot: the shipped mahru_arm and arm6, and the published Kinova Gen3 and UFactory xArm7 models
 from ``../shared/robots`` (unedited; continuous joints) when that folder is there. Writes the
@@ -81,10 +81,10 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(HERE))
     from dynamics_throughput import machine_info
 
-    from evojax_motion.database import save_database
-    from evojax_motion.mocap import retarget as rt
-    from evojax_motion.mocap.importer import ImportParams, import_trials, report_dict
-    from evojax_motion.robot import load_robot
+    from evojax_motion.demonstrations.mocap import retarget as rt
+    from evojax_motion.demonstrations.mocap.importer import ImportParams, import_trials, report_dict
+    from evojax_motion.model.robot import load_robot
+    from evojax_motion.motion.database import save_database
 
     machine = machine_info()
     machine["command"] = " ".join(

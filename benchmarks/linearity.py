@@ -8,7 +8,8 @@ Reads `trace_generation.py` results at several condition counts (same machine, s
   per optimisation batch that does not shrink with the batch (kernels whose duration is their
   dependency chain, not their work: a batch of 1,000 fills a few percent of a large GPU).
   ``chunks(m)`` is the optimiser's batch count, ``ceil(m / compiler.max_batch)``
-  (`compile_optim.in_chunks`). With it, the largest ``L`` at which the smallest size's time per
+  (`compiler.optimisation.in_chunks`). With it, the largest ``L`` at which the smallest size's time
+  per
   condition stays within ``--tolerance`` of the largest's (the issue's linearity bar);
 - **what-ifs**: the smallest over the largest size's time per condition if one part of the
   generation took no time at all (its kernels' device time removed at both sizes; an
@@ -41,7 +42,8 @@ DYNAMICS = "dynamics_rnea:"  # sources of the rigid-body dynamics' kernels (`tra
 
 
 def batch_chunks(conditions: int, max_batch: int | None, starts: int = 1) -> int:
-    """Optimiser batches of a generation at ``conditions``: `compile_optim.in_chunks`' count."""
+    """Optimiser batches of a generation at ``conditions``: `compiler.optimisation.in_chunks`'
+    count."""
     b = conditions * starts
     return 1 if max_batch is None or b <= max_batch else -(-b // max_batch)
 
@@ -186,7 +188,7 @@ def markdown(r: dict, sources: list[str], rows: int) -> str:
 
 
 def main(argv=None) -> dict:
-    from evojax_motion.compile_optim import MAX_BATCH
+    from evojax_motion.compiler.optimisation import MAX_BATCH
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(

@@ -13,7 +13,8 @@ Measures, on whatever JAX backend is active (CPU or GPU):
 
 The database: ``--db FILE`` / ``--run DIR`` (``db_final.npz``), or by default a synthetic one of
 the paper's size (611 demonstrations, T = 100, all valid, all human: no evolved entries), built
-from ``demos.generate_demonstrations`` in ~15 s and cached in ``runs/online_latency_db.npz``. The
+from ``demonstrations.synthetic.generate_demonstrations`` in ~15 s and cached in
+``runs/online_latency_db.npz``. The
 query does the same work on any database of this shape (the limit projection runs whenever one
 motion of a batch needs it); the JSON says which database was used.
 
@@ -43,13 +44,14 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402  (one definition for all benchmarks)
 
-from evojax_motion.database import (  # noqa: E402
+from evojax_motion.linalg.precision import exact_matmuls  # noqa: E402
+from evojax_motion.motion.database import (  # noqa: E402
     EVOLVED,
     DatabaseMeta,
     make_database,
     save_database,
 )
-from evojax_motion.online import (  # noqa: E402
+from evojax_motion.online.generation import (  # noqa: E402
     joint_limits_f32,
     load_online_model,
     make_online_generator,
@@ -57,7 +59,6 @@ from evojax_motion.online import (  # noqa: E402
     online_query,
     to_numpy,
 )
-from evojax_motion.precision import exact_matmuls  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 DEFAULT_DB = ROOT / "runs" / "online_latency_db.npz"
@@ -66,9 +67,9 @@ SYNTHETIC = "synthetic demonstrations (demos.generate_demonstrations), 611 x T=1
 
 def synthetic_database(path: Path, count: int, capacity: int, samples: int, seed: int) -> Path:
     """Demonstrations of the paper's size (``count`` valid of ``capacity``, all valid here)."""
-    from evojax_motion.demos import DemoSettings, generate_demonstrations
-    from evojax_motion.dynamics import make_dynamics
-    from evojax_motion.robot import load_robot
+    from evojax_motion.demonstrations.synthetic import DemoSettings, generate_demonstrations
+    from evojax_motion.model.dynamics import make_dynamics
+    from evojax_motion.model.robot import load_robot
 
     robot = load_robot("mahru_arm")
     dyn = make_dynamics(robot)

@@ -7,7 +7,8 @@ neighbours' mean) and three motions with those same BCs are compared:
 
 - learned: the online motion, interpolation (eq. 1-2) from the learned database + limits;
 - optimised: the movement compiler via optimisation (eq. 3-5) on the same basis as the online
-  motion (the learned database's neighbours, evolved ones preferred: `online.OnlineSettings`),
+  motion (the learned database's neighbours, evolved ones preferred:
+  `online.generation.OnlineSettings`),
   the run's compiler settings (the expensive reference the paper compares with, Fig. 9-10);
   also reported on the evolution's own neighbour rule (every valid entry, humans included);
 - human: interpolation from the human-only database (the same online pipeline).
@@ -38,9 +39,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from evojax_motion.basis import pca_basis  # noqa: E402
-from evojax_motion.database import humans_only  # noqa: E402
-from evojax_motion.online import (  # noqa: E402
+from evojax_motion.compiler.basis import pca_basis  # noqa: E402
+from evojax_motion.motion.database import humans_only  # noqa: E402
+from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
     exact_matmuls,
     finish_motion,
@@ -57,8 +58,9 @@ CRITERIA = {"ratio_median_max": 1.05, "hand_error_p95_max_m": 0.005, "violations
 
 
 def held_out_targets(model, cfg, n: int, seed: int) -> np.ndarray:
-    """``n`` targets drawn like the run's conditions (`conditions.make_conditions`), new key."""
-    from evojax_motion.conditions import make_conditions
+    """``n`` targets drawn like the run's conditions (`evolution.conditions.make_conditions`), new
+    key."""
+    from evojax_motion.evolution.conditions import make_conditions
 
     evo = dataclasses.replace(cfg.evolution, conditions=n)
     key = jax.random.fold_in(jax.random.key(cfg.seed), HELD_OUT_STREAM + seed)
@@ -68,7 +70,7 @@ def held_out_targets(model, cfg, n: int, seed: int) -> np.ndarray:
 
 def evaluate(model, cfg, targets: np.ndarray) -> dict:
     """The three motions for ``targets (C, 3)``; numpy arrays of costs, flags and trajectories."""
-    from evojax_motion.compile_optim import make_optimisation_compiler
+    from evojax_motion.compiler.optimisation import make_optimisation_compiler
 
     lower, upper = (jnp.asarray(a) for a in joint_limits_f32(model.robot))
     dyn, grid, bs, st = model.dyn, model.grid, model.basis_settings, model.settings
@@ -200,7 +202,7 @@ def plot(path: Path, res: dict, use, joint_names, summary: dict) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from evojax_motion.checkpoint import atomic_write_bytes
+    from evojax_motion.run.checkpoint import atomic_write_bytes
 
     lm, hm, om = res["learned"], res["human"], res["optimised"]
     c_l, c_h, c_o = lm.cost[use], hm.cost[use], np.asarray(om.cost)[use]
@@ -247,7 +249,7 @@ def plot(path: Path, res: dict, use, joint_names, summary: dict) -> Path:
 
 
 def main(argv=None) -> int:
-    from evojax_motion.config import load_config
+    from evojax_motion.settings import load_config
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--run", default=None, help="finished training run directory")
@@ -267,7 +269,7 @@ def main(argv=None) -> int:
     if run is None:
         if args.config is None or args.train_dir is None:
             ap.error("give --run DIR, or --config FILE and --train-dir DIR")
-        from evojax_motion.train import run_training
+        from evojax_motion.run.training import run_training
 
         cfg = load_config(args.config)
         resume = (Path(args.train_dir) / "config.yaml").is_file()
@@ -299,7 +301,7 @@ def main(argv=None) -> int:
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{args.name}.json"
-    from evojax_motion.checkpoint import atomic_write_text
+    from evojax_motion.run.checkpoint import atomic_write_text
 
     atomic_write_text(path, json.dumps(summary, indent=1))
     fig = plot(out_dir / f"{args.name}.png", res, use, model.robot.joint_names, summary)

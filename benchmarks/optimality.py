@@ -1,6 +1,7 @@
 """How close the optimisation compiler (paper sec. 2.2, eq. 3-5) gets to a float64 SLSQP solve.
 
-For >= 100 conditions drawn as the evolution draws them (``conditions.make_conditions``: catch
+For >= 100 conditions drawn as the evolution draws them (``evolution.conditions.make_conditions``:
+catch
 points around the synthetic demonstrations, IK final postures, rest-to-rest BCs), each optimiser
 variant of ``compile_optim`` runs on the same bases and boundaries as the float64 SciPy SLSQP
 reference (``slsqp_reference``, same reduced problem, same start). The gap of a condition is
@@ -10,7 +11,7 @@ markdown table. Compile and run times are measured separately (second call, no c
 
     python benchmarks/optimality.py                       # 100 conditions, T = 100, all variants
     python benchmarks/optimality.py --variants newton,adam-200 --conditions 300
-    python benchmarks/optimality.py --synthetic           # without evojax_motion.demos
+    python benchmarks/optimality.py --synthetic  # without evojax_motion.demonstrations.synthetic
 """
 
 from __future__ import annotations
@@ -29,13 +30,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.slsqp_reference import solve_reference, torque_costs_f64
-from evojax_motion.basis import BasisSettings, pca_basis, select_neighbours
-from evojax_motion.compile_interp import Boundary
-from evojax_motion.compile_optim import OptimSettings, make_optimisation_compiler
-from evojax_motion.database import make_database
-from evojax_motion.dynamics import make_dynamics
-from evojax_motion.robot import load_robot
-from evojax_motion.timegrid import make_time_grid
+from evojax_motion.compiler.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compiler.interpolation import Boundary
+from evojax_motion.compiler.optimisation import OptimSettings, make_optimisation_compiler
+from evojax_motion.model.dynamics import make_dynamics
+from evojax_motion.model.robot import load_robot
+from evojax_motion.motion.database import make_database
+from evojax_motion.motion.timegrid import make_time_grid
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # Optimiser variants compared (name -> OptimSettings overrides); the default is "newton".
@@ -92,9 +93,9 @@ def build_problem(args):
         db = synthetic_database(robot, dyn, args.demos, args.samples, k_demo)
         targets, boundary = synthetic_conditions(db, robot, args.conditions, bs, k_cond)
     else:
-        from evojax_motion.conditions import make_conditions
-        from evojax_motion.demos import DemoSettings, generate_demonstrations
-        from evojax_motion.evolution import EvolutionSettings
+        from evojax_motion.demonstrations.synthetic import DemoSettings, generate_demonstrations
+        from evojax_motion.evolution.conditions import make_conditions
+        from evojax_motion.evolution.step import EvolutionSettings
 
         db, _ = generate_demonstrations(
             robot, dyn, DemoSettings(count=args.demos, samples=args.samples), k_demo

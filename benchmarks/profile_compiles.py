@@ -1,5 +1,5 @@
 """Where a fresh process's compile time goes before the first generation: every program JAX
-traces and compiles while `train.initial_state` builds generation 0 (demonstrations, then the
+traces and compiles while `run.training.initial_state` builds generation 0 (demonstrations, then the
 condition set and costs), and the generation step, grouped by phase and program name.
 
 Reads JAX's own log lines (``jax_log_compiles``: "Finished tracing ... / XLA compilation of
@@ -56,13 +56,13 @@ def main(argv=None) -> None:
     logging.getLogger("jax").setLevel(logging.DEBUG)
     jax.config.update("jax_log_compiles", True)
 
-    import evojax_motion.workflow as workflow
-    from evojax_motion import train
-    from evojax_motion.config import load_config
+    import evojax_motion.run.workflow as workflow
+    from evojax_motion.run import training as train
+    from evojax_motion.settings import load_config
 
     cfg = load_config(args.config)
     robot, dyn = workflow.make_robot_dynamics(cfg)
-    demos = workflow.demonstrations  # what `train.initial_state` calls
+    demos = workflow.demonstrations  # what `run.training.initial_state` calls
 
     def timed_demos(*a, **k):  # the phases: demonstrations, then everything else of the setup
         phase[0] = "demonstrations"

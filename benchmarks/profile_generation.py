@@ -2,10 +2,11 @@
 
 Stages (each jitted alone, timed after compilation, median of ``--repeats``):
 ``neighbours`` (eq. 6 top-k), ``pca`` (per-joint PCA of the neighbours), ``bc_solve``
-(`compile_interp.solve_boundary` with the optimisation compiler's rule), ``reduced``
-(`compile_optim.reduced_problems`: BC solve + orthonormal null directions + node arrays),
+(`compiler.interpolation.solve_boundary` with the optimisation compiler's rule), ``reduced``
+(`compiler.optimisation.reduced_problems`: BC solve + orthonormal null directions + node arrays),
 ``value`` and ``value_grad`` of the batched search objective at z = 0 as the optimiser
-compiles them (`compile_optim.cpu_fast_path`, `make_search_value`: on CPU with BFGS the scalar
+compiles them (`compiler.optimisation.cpu_fast_path`, `make_search_value`: on CPU with BFGS the
+scalar
 RNEA layout and one reduction over the nodes), ``value_grad_autodiff`` (autodiff of
 `make_objective` with the config's dynamics, for comparison) and ``hessian`` (of the latter),
 ``eigh`` of the batch's trust-region model (B, n, n) (``jnp.linalg.eigh``, and ``small_eigh``:
@@ -39,9 +40,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from dynamics_throughput import machine_info  # noqa: E402
 from generations_per_sec import build  # noqa: E402
 
-from evojax_motion.basis import pca_basis, select_neighbours, small_eigh  # noqa: E402
-from evojax_motion.compile_interp import solve_boundary  # noqa: E402
-from evojax_motion.compile_optim import (  # noqa: E402
+from evojax_motion.compiler.basis import pca_basis, select_neighbours, small_eigh  # noqa: E402
+from evojax_motion.compiler.interpolation import solve_boundary  # noqa: E402
+from evojax_motion.compiler.optimisation import (  # noqa: E402
     _trust_region_step,
     compile_optimisation,
     cpu_fast_path,
@@ -49,10 +50,10 @@ from evojax_motion.compile_optim import (  # noqa: E402
     make_search_value,
     reduced_problems,
 )
-from evojax_motion.config import load_config  # noqa: E402
-from evojax_motion.database import count_human  # noqa: E402
-from evojax_motion.evolution import make_generation_step  # noqa: E402
-from evojax_motion.timegrid import make_time_grid  # noqa: E402
+from evojax_motion.evolution.step import make_generation_step  # noqa: E402
+from evojax_motion.motion.database import count_human  # noqa: E402
+from evojax_motion.motion.timegrid import make_time_grid  # noqa: E402
+from evojax_motion.settings import load_config  # noqa: E402
 
 
 def timed(fn, *args, repeats: int) -> dict:

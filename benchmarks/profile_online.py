@@ -4,11 +4,14 @@ Stages (each jitted alone at full float32 precision, timed after compilation, me
 ``--repeats``), for ``--batch`` targets near the database's conditions (as
 ``benchmarks/online_latency.py``):
 ``neighbours`` (eq. 6, the learned region and the evolved-only search), ``reach`` (+ the
-human-like IK of the final posture: `online.reach_query`), ``build`` (+ the per-joint PCA and the
-BCs: `online.build_problem`), ``interp`` (eq. 1-2, `compile_interp.compile_interpolation`),
-``limits`` (`online.enforce_limits`, its projection forced on by narrowing the limits by
+human-like IK of the final posture: `online.generation.reach_query`), ``build`` (+ the per-joint
+PCA and the
+BCs: `online.generation.build_problem`), ``interp`` (eq. 1-2,
+`compiler.interpolation.compile_interpolation`),
+``limits`` (`online.generation.enforce_limits`, its projection forced on by narrowing the limits by
 ``--narrow`` of their span), ``dynamics`` (derivatives, inverse dynamics, eq. 5 cost), ``finish``
-(`online.finish_motion`: interp + limits + dynamics + checks) and ``query`` (all of it, the
+(`online.generation.finish_motion`: interp + limits + dynamics + checks) and ``query`` (all of it,
+the
 generator users call). Inside one jit XLA fuses across stages, so the parts need not add up.
 
 Usage:
@@ -35,11 +38,13 @@ from dynamics_throughput import machine_info  # noqa: E402
 from online_latency import DEFAULT_DB, synthetic_database, targets_near_conditions  # noqa: E402
 from profile_generation import timed  # noqa: E402
 
-from evojax_motion.basis import select_neighbours  # noqa: E402
-from evojax_motion.compile_interp import compile_interpolation  # noqa: E402
-from evojax_motion.database import EVOLVED  # noqa: E402
-from evojax_motion.objective import cost_from_torques  # noqa: E402
-from evojax_motion.online import (  # noqa: E402
+from evojax_motion.compiler.basis import select_neighbours  # noqa: E402
+from evojax_motion.compiler.interpolation import compile_interpolation  # noqa: E402
+from evojax_motion.linalg.precision import exact_matmuls  # noqa: E402
+from evojax_motion.motion.database import EVOLVED  # noqa: E402
+from evojax_motion.motion.objective import cost_from_torques  # noqa: E402
+from evojax_motion.motion.timegrid import derivatives  # noqa: E402
+from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
     enforce_limits,
     finish_motion,
@@ -49,8 +54,6 @@ from evojax_motion.online import (  # noqa: E402
     online_database,
     reach_query,
 )
-from evojax_motion.precision import exact_matmuls  # noqa: E402
-from evojax_motion.timegrid import derivatives  # noqa: E402
 
 
 def main(argv=None) -> None:

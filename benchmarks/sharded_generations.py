@@ -3,10 +3,10 @@
 One invocation, for each condition count of ``--sweep-conditions`` (default 10000,100000):
 
 - builds generation 0 once (demonstrations, condition set, empty evolved slots:
-  ``train.initial_state`` of ``--config`` with ``evolution.conditions`` set to the count);
+  ``run.training.initial_state`` of ``--config`` with ``evolution.conditions`` set to the count);
 - for each device count of ``--devices`` (default: 1 and all visible), in a fresh process (clean
   peak-memory counters; an out-of-memory point is recorded as such and the sweep goes on):
-  compiles ``parallel.make_sharded_generation_step`` ahead of time (``compile_s``), runs
+  compiles ``evolution.sharding.make_sharded_generation_step`` ahead of time (``compile_s``), runs
   ``--generations`` generations and reports the median seconds of generations 2.. (generation 1
   fills empty slots: different work) -> generations/s, the speed-up over one device and the
   parallel efficiency (speed-up / devices), and each device's peak memory;
@@ -48,7 +48,7 @@ GIB = 2**30
 
 
 def save_state(path: Path, db, conditions, n_human: int) -> None:
-    from evojax_motion.conditions import conditions_to_tree
+    from evojax_motion.evolution.conditions import conditions_to_tree
 
     tree = conditions_to_tree(conditions)
     arrays = {f"db.{k}": np.asarray(v) for k, v in db._asdict().items()}
@@ -58,8 +58,8 @@ def save_state(path: Path, db, conditions, n_human: int) -> None:
 
 
 def load_state(path: Path):
-    from evojax_motion.conditions import conditions_from_tree
-    from evojax_motion.database import Database
+    from evojax_motion.evolution.conditions import conditions_from_tree
+    from evojax_motion.motion.database import Database
 
     with np.load(path) as z:
         db = Database(**{k[3:]: z[k] for k in z.files if k.startswith("db.")})
@@ -79,11 +79,11 @@ def run_point(args) -> None:
     """Child process: time the sharded step on ``args.devices`` devices; print one JSON line."""
     import jax
 
-    from evojax_motion.config import load_config
-    from evojax_motion.database import Database
-    from evojax_motion.parallel import make_sharded_generation_step, padded_count
-    from evojax_motion.timegrid import make_time_grid
-    from evojax_motion.workflow import make_robot_dynamics
+    from evojax_motion.evolution.sharding import make_sharded_generation_step, padded_count
+    from evojax_motion.motion.database import Database
+    from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.run.workflow import make_robot_dynamics
+    from evojax_motion.settings import load_config
 
     cfg = load_config(args.config, args.set)
     robot, dyn = make_robot_dynamics(cfg)
@@ -249,8 +249,8 @@ def main(argv=None) -> None:
     import jax
     from generations_per_sec import build, machine_info
 
-    from evojax_motion.config import load_config
-    from evojax_motion.database import count_human
+    from evojax_motion.motion.database import count_human
+    from evojax_motion.settings import load_config
 
     cfg = load_config(args.config, args.set)
     n_all = jax.device_count()

@@ -8,7 +8,8 @@ The online query and the generation step decompose one ``k x k`` Gram matrix per
 - ``jacobi_eigh``: `basis.jacobi_eigh` under vmap (elementwise parallel Jacobi, no solver call);
 - ``linalg_eigh``: ``jnp.linalg.eigh`` on the batch (LAPACK on CPU; cuSOLVER's batched Jacobi on
   GPUs);
-- ``pca_rows_gram``: the PCA's two-pass Gram decomposition (`basis._pca_rows_gram`, what the
+- ``pca_rows_gram``: the PCA's two-pass Gram decomposition (`compiler.basis._pca_rows_gram`, what
+the
   accelerator path runs) and ``pca_rows_jacobi_eigh``, the same two passes with `jacobi_eigh`
   (6 and 2 sweeps: an earlier accelerator path);
 
@@ -36,12 +37,14 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from dynamics_throughput import machine_info  # noqa: E402
 from profile_generation import timed  # noqa: E402
 
-from evojax_motion.basis import _pca_rows_gram, jacobi_eigh  # noqa: E402
-from evojax_motion.precision import exact_matmuls  # noqa: E402
+from evojax_motion.compiler.basis import _pca_rows_gram  # noqa: E402
+from evojax_motion.linalg.jacobi import jacobi_eigh  # noqa: E402
+from evojax_motion.linalg.precision import exact_matmuls  # noqa: E402
 
 
 def pca_rows_jacobi_eigh(centred, n_components: int):
-    """`basis._pca_rows_gram` with `jacobi_eigh` (6 sweeps, then 2 on the nearly diagonal Gram)."""
+    """`compiler.basis._pca_rows_gram` with `jacobi_eigh` (6 sweeps, then 2 on the nearly diagonal
+    Gram)."""
     _, u = jacobi_eigh(centred @ centred.T)
     y = u.T @ centred
     _, w = jacobi_eigh(y @ y.T, 2)

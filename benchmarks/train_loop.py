@@ -1,7 +1,7 @@
 """What a training run's generation costs beyond the generation step: its files.
 
 `evojax-motion train` writes after every generation its metrics and, every
-``train.checkpoint_every`` generations, an orbax checkpoint (`train.run_training`); it queues
+``train.checkpoint_every`` generations, an orbax checkpoint (`run.training.run_training`); it queues
 the next generation before writing a generation's files, so the two overlap. This runs the
 same config once per ``--every`` value (fresh run folders, progress bar and plots off) and
 reads each run's ``metrics.jsonl``: the wall time from one generation's result to the next, as
@@ -33,9 +33,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from dynamics_throughput import machine_info  # noqa: E402
 from result_files import machine_line, write_result  # noqa: E402
 
-from evojax_motion.compile_cache import enable_compile_cache  # noqa: E402
-from evojax_motion.config import load_config  # noqa: E402
-from evojax_motion.train import METRICS_FILE, run_training  # noqa: E402
+from evojax_motion.run.cache import enable_compile_cache  # noqa: E402
+from evojax_motion.run.training import METRICS_FILE, run_training  # noqa: E402
+from evojax_motion.settings import load_config  # noqa: E402
 
 
 def loop_times(rows: list[dict]) -> dict:

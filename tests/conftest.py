@@ -7,7 +7,7 @@ import tempfile
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # One persistent XLA cache for the whole test run: the controller makes it before pytest-xdist
 # starts its workers, which inherit the variable, as do the subprocesses, the notebook kernel and
-# the command-line tools (`compile_cache.CACHE_ENV`) the tests start. The same programs (the tiny
+# the command-line tools (`run.cache.CACHE_ENV`) the tests start. The same programs (the tiny
 # config's generation step, the online query of the test database) are then compiled once, not
 # once per process. Never the user's own cache: a fresh directory per test run.
 _OWN_CACHE = "PYTEST_XDIST_WORKER" not in os.environ and "EVOJAX_TEST_XLA_CACHE" not in os.environ
@@ -19,11 +19,12 @@ if "EVOJAX_TEST_XLA_CACHE" in os.environ:
     # every program, not only those that took >= 1 s to compile (as the command line does)
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 # The tests' programs compile with XLA's CPU fusion emitters off, as those of
-# `dynamics.unfused_cpu_program` always do: every test passes with its tolerances unchanged, and
+# `model.dynamics.unfused_cpu_program` always do: every test passes with its tolerances unchanged,
+# and
 # pytest takes ~60 % of the time (most of the suite is XLA compilation; 2 CPU cores:
 # 230-234 s vs 365-394 s). For the test run only: its processes and those they start inherit
 # XLA_FLAGS; a setting of the flag in the user's XLA_FLAGS wins. Spelt "=0", not "=false": the
-# RNEA layout that `dynamics_rnea.default_form` picks is then still the users' default one
+# RNEA layout that `model.rnea.default_form` picks is then still the users' default one
 # (vector on CPU), since it switches to "scalar" on "=false" only; checked below.
 _FLAG = "--xla_cpu_use_fusion_emitters"
 _SET_FLAG = _FLAG not in os.environ.get("XLA_FLAGS", "")
@@ -43,7 +44,7 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 if "EVOJAX_TEST_XLA_CACHE" in os.environ:  # in case a plugin imported jax before this file
     jax.config.update("jax_compilation_cache_dir", os.environ["EVOJAX_TEST_XLA_CACHE"])
 
-from evojax_motion.dynamics_rnea import default_form  # noqa: E402
+from evojax_motion.model.rnea import default_form  # noqa: E402
 
 if _SET_FLAG and jax.default_backend() == "cpu" and default_form() != "vector":
     raise RuntimeError(

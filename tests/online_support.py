@@ -13,13 +13,13 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from evojax_motion.basis import BasisSettings
-from evojax_motion.database import Database, DatabaseMeta, make_database
-from evojax_motion.dynamics import Dynamics, make_dynamics
-from evojax_motion.online import OnlineSettings, make_online_generator, online_database
-from evojax_motion.robot import Robot, load_robot
-from evojax_motion.robot import mj_inverse_torques as reference_torques
-from evojax_motion.timegrid import TimeGrid, make_time_grid
+from evojax_motion.compiler.basis import BasisSettings
+from evojax_motion.model.dynamics import Dynamics, make_dynamics
+from evojax_motion.model.robot import Robot, load_robot
+from evojax_motion.model.robot import mj_inverse_torques as reference_torques
+from evojax_motion.motion.database import Database, DatabaseMeta, make_database
+from evojax_motion.motion.timegrid import TimeGrid, make_time_grid
+from evojax_motion.online.generation import OnlineSettings, make_online_generator, online_database
 
 SAMPLES = 32  # T: small for compile time, large enough for the BC algebra (compile_interp)
 N_PRIMITIVES = 60
@@ -88,8 +88,8 @@ def online_env() -> Env:
 
 @functools.cache
 def reach_checker():
-    """The jitted `online.make_reach_checker` of `online_env`."""
-    from evojax_motion.online import make_reach_checker
+    """The jitted `online.generation.make_reach_checker` of `online_env`."""
+    from evojax_motion.online.generation import make_reach_checker
 
     env = online_env()
     return make_reach_checker(env.robot, env.dyn, BASIS, SETTINGS)
@@ -100,8 +100,8 @@ CATCH_KW = {"horizon": 1.2, "samples": 121}  # = the CLI's settings for ``--hori
 
 @functools.cache
 def catcher():
-    """``(settings, jitted catcher)`` of `online_env` (`catching.make_catcher`)."""
-    from evojax_motion.catching import CatchSettings, make_catcher
+    """``(settings, jitted catcher)`` of `online_env` (`online.catching.make_catcher`)."""
+    from evojax_motion.online.catching import CatchSettings, make_catcher
 
     env = online_env()
     catch = CatchSettings(**CATCH_KW)
@@ -109,10 +109,10 @@ def catcher():
 
 
 def cli_session(env: Env, db_path) -> tuple:
-    """What ``online_cli._session`` returns for ``db_path``, built from the cached functions, so
+    """What ``cli.online._session`` returns for ``db_path``, built from the cached functions, so
     CLI tests reuse the compilations (the loader itself is tested separately)."""
-    from evojax_motion import online_cli
-    from evojax_motion.online import OnlineModel
+    from evojax_motion.cli import online as online_cli
+    from evojax_motion.online.generation import OnlineModel
 
     model = OnlineModel(
         robot=env.robot,
@@ -134,7 +134,7 @@ def cli_session(env: Env, db_path) -> tuple:
 
 def query(env: Env, targets, duration=None, q_start=None):
     """Run the cached generator on ``targets (C, 3)``; numpy `OnlineResult`."""
-    from evojax_motion.online import check_query, to_numpy
+    from evojax_motion.online.generation import check_query, to_numpy
 
     t, d, q0 = check_query(env.robot, targets, duration, q_start)
     return to_numpy(env.generate(env.db_device, t, d, q0))

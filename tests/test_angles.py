@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evojax_motion.angles import on_rest_branch, posture_on_rest_branch, wrap_difference
+from evojax_motion.motion.angles import on_rest_branch, posture_on_rest_branch, wrap_difference
 
 TURN_TOL = 1e-9  # float64 round-off of a subtraction of whole turns
 

@@ -26,9 +26,9 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from evojax_motion.cli import main
-from evojax_motion.config import Config, config_to_dict, load_config
-from evojax_motion.train import EarlyCompile
+from evojax_motion.cli.entry import main
+from evojax_motion.run.training import EarlyCompile
+from evojax_motion.settings import Config, config_to_dict, load_config
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "tiny.yaml"
@@ -50,8 +50,8 @@ def inputs(tmp_path_factory):
     """A folder of good and broken input files; checked unchanged by every example."""
     from online_support import synthetic_database
 
-    from evojax_motion.database import DatabaseMeta, save_database
-    from evojax_motion.robot import load_robot
+    from evojax_motion.model.robot import load_robot
+    from evojax_motion.motion.database import DatabaseMeta, save_database
 
     d = tmp_path_factory.mktemp("inputs")
 
@@ -129,7 +129,7 @@ STARTED: list = []  # background compiles started since the last `check_refused`
 @pytest.fixture(scope="module", autouse=True)
 def _record_background_compiles():
     """A run refused over its inputs must not have started background compiles
-    (`train.EarlyCompile`): it would wait for them before saying what was wrong."""
+    (`run.training.EarlyCompile`): it would wait for them before saying what was wrong."""
     original = EarlyCompile.start
 
     def start(self):
@@ -693,7 +693,7 @@ def test_refused_in_one_line(inputs, workdir, case):
 
 def test_capacity_is_checked_before_the_ik(monkeypatch, inputs, workdir):
     """``--capacity`` below the trials found is refused before any trial is read or solved."""
-    from evojax_motion.mocap import importer
+    from evojax_motion.demonstrations.mocap import importer
 
     def fail(*args, **kwargs):
         raise AssertionError("the trials were prepared before --capacity was checked")
@@ -705,8 +705,8 @@ def test_capacity_is_checked_before_the_ik(monkeypatch, inputs, workdir):
 
 _REFUSE_SCRIPT = """
 import json, resource, sys, time
-from evojax_motion.cli import main
-from evojax_motion.robot import load_robot
+from evojax_motion.cli.entry import main
+from evojax_motion.model.robot import load_robot
 import jax
 jax.devices()
 load_robot("mahru_arm")  # the robot a refused run loads anyway
@@ -750,7 +750,7 @@ def test_absurd_sizes_are_refused_at_once_without_allocating(tmp_path, setting):
 # reported the worker's peak (2.8-3.6 GiB where the run's own was 1.1 GiB).
 _PEAK_SCRIPT = """
 import json, re, resource, sys
-from evojax_motion.cli import main
+from evojax_motion.cli.entry import main
 status = main(sys.argv[1:])
 try:
     with open("/proc/self/status") as f:
@@ -778,14 +778,14 @@ def _user_environment() -> dict:
 
 @pytest.mark.slow
 def test_memory_estimate_is_near_the_measured_peak_of_a_tiny_run(tmp_path):
-    """`memory.estimate_run` of ``configs/tiny.yaml`` (one generation) against the peak resident
+    """`run.memory.estimate_run` of ``configs/tiny.yaml`` (one generation) against the peak resident
     memory of that run in a fresh process (compilation cache off, as `BASE_BYTES` assumes)."""
     import json
     import subprocess
     import sys
 
-    from evojax_motion.memory import estimate_run
-    from evojax_motion.robot import load_robot
+    from evojax_motion.model.robot import load_robot
+    from evojax_motion.run.memory import estimate_run
 
     overrides = ["evolution.generations=1"]
     argv = ["train", str(TINY), "--out", str(tmp_path / "run"), "--quiet"]
@@ -805,9 +805,9 @@ def test_memory_estimate_is_near_the_measured_peak_of_a_tiny_run(tmp_path):
 
 def test_sizes_of_a_demos_file_are_read_from_its_header(inputs):
     """The estimate of a run with ``demos_file`` takes n and T from the file's header."""
-    from evojax_motion.database import database_shape, load_database
-    from evojax_motion.memory import run_sizes
-    from evojax_motion.robot import load_robot
+    from evojax_motion.model.robot import load_robot
+    from evojax_motion.motion.database import database_shape, load_database
+    from evojax_motion.run.memory import run_sizes
 
     path = inputs / "good.npz"
     shape = load_database(path)[0].q.shape

@@ -9,9 +9,9 @@ import pytest
 from scipy.linalg import subspace_angles
 from scipy.spatial.transform import Rotation
 
-import evojax_motion.basis as basis_module
+import evojax_motion.compiler.basis as basis_module
 import evojax_motion.linalg.jacobi as linalg_jacobi
-from evojax_motion.basis import (
+from evojax_motion.compiler.basis import (
     BasisSettings,
     neighbour_candidates,
     pca_basis,
@@ -137,7 +137,7 @@ def test_neighbours_among_candidates_equal_the_whole_search_where_exact(filled):
     """Candidate lists (the k nearest human rows and 4 k nearest slots, made once) give the
     whole database's neighbours wherever they report ``exact``: nearly everywhere with most
     slots filled (a run's later generations), not everywhere with few (its first)."""
-    from evojax_motion.evolution import search_neighbours
+    from evojax_motion.evolution.step import search_neighbours
 
     k, n_fixed, m, radius = 5, 30, 300, 0.1
     cond, valid, targets = _run_like_database(np.random.default_rng(1), n_fixed, m, filled)

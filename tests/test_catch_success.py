@@ -40,9 +40,9 @@ def test_throws_reach_their_aim_within_the_thrower_model():
 
 @pytest.fixture(scope="module")
 def tiny_result(tmp_path_factory):
-    from evojax_motion.config import load_config
-    from evojax_motion.online import load_online_model
-    from evojax_motion.train import run_training
+    from evojax_motion.online.generation import load_online_model
+    from evojax_motion.run.training import run_training
+    from evojax_motion.settings import load_config
 
     cfg = load_config(TINY)
     out = tmp_path_factory.mktemp("tiny") / "run"

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from online_support import catcher, cli_session, online_env
 
-from evojax_motion.catching import (
+from evojax_motion.errors import UserError
+from evojax_motion.online.catching import (
     CatchSettings,
     ball_flight,
     explain_plan,
     validate_ball,
 )
-from evojax_motion.errors import UserError
 
 TOL_FLIGHT = 1e-4  # m: float32 ballistic positions over 1.5 s (|p| ~ 3 m)
 TOL_DRAG = 1e-4  # m: RK4 (4 substeps of 10 ms) vs SciPy's DOP853 at 1e-10
@@ -124,9 +124,9 @@ def test_cli_catch(tmp_path, capsys, monkeypatch):
     """``evojax-motion catch`` on the cached compilations (the loader: test_online)."""
     from test_online import _cli
 
-    from evojax_motion import online_cli
-    from evojax_motion.database import save_database
-    from evojax_motion.export import read_trajectory
+    from evojax_motion.cli import online as online_cli
+    from evojax_motion.motion.database import save_database
+    from evojax_motion.run.export import read_trajectory
 
     monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
     env = online_env()

@@ -9,7 +9,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.cholesky_kernels import pallas_cholesky_solve, spd_systems
-from evojax_motion.compile_optim import _cholesky_solve
+from evojax_motion.compiler.optimisation import _cholesky_solve
 
 SOLVE_RTOL = 1e-4  # float32 solves of condition ~1e3 systems, relative to the largest entry
 

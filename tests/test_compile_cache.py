@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from evojax_motion import compile_cache
+from evojax_motion.run import cache as compile_cache
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -185,7 +185,7 @@ def test_key_changes_with_parts_shapes_precision_and_x64():
 def test_model_digest_is_stable_across_processes():
     """The key must not change between two processes that load the same robot model."""
     code = (
-        "from evojax_motion.robot import load_robot; from evojax_motion.compile_cache import "
+        "from evojax_motion.model.robot import load_robot; from evojax_motion.run.cache import "
         "model_digest; print(model_digest(load_robot('mahru_arm').mj_model))"
     )
     digests = {

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
-from evojax_motion.basis import Basis, pca_basis, select_neighbours
-from evojax_motion.compile_interp import (
+from evojax_motion.compiler.basis import Basis, pca_basis, select_neighbours
+from evojax_motion.compiler.interpolation import (
     RANK_RTOL,
     STRICT_RANK_RTOL,
     Boundary,
@@ -18,7 +18,7 @@ from evojax_motion.compile_interp import (
     validate_boundary,
 )
 from evojax_motion.errors import UserError
-from evojax_motion.timegrid import make_time_grid
+from evojax_motion.motion.timegrid import make_time_grid
 
 T, J, K, C = 24, 3, 3, 6
 TOL_BC_F32 = 1e-5  # rad, rad/s: BCs of a solvable system in float32
@@ -179,9 +179,9 @@ def test_bad_inputs_are_flagged_in_the_batch(compiled):
 @pytest.mark.slow
 def test_leave_one_out_reproduces_demonstrations():
     """Each held-out demonstration, rebuilt from its neighbours with its own BCs (rest to rest)."""
-    from evojax_motion.demos import DemoSettings, generate_demonstrations
-    from evojax_motion.dynamics import make_dynamics
-    from evojax_motion.robot import load_robot
+    from evojax_motion.demonstrations.synthetic import DemoSettings, generate_demonstrations
+    from evojax_motion.model.dynamics import make_dynamics
+    from evojax_motion.model.robot import load_robot
 
     robot = load_robot("mahru_arm")
     dyn = make_dynamics(robot, "rnea")
@@ -234,12 +234,14 @@ TOL_GRAM_SWITCH = 1e-5  # measured 1.2e-7 and 3.5e-7
 
 
 def test_bc_solve_gives_the_same_problems_past_the_gram_switch(grid, monkeypatch):
-    """`compile_interp.GRAM_SVD_MIN_MATRICES`: the optimisation rule's BC solve (``leak``) as on
-    accelerators, with `basis.small_right_svd`'s two Gram passes (threshold reached) and with the
+    """`compiler.interpolation.GRAM_SVD_MIN_MATRICES`: the optimisation rule's BC solve (``leak``)
+    as on
+    accelerators, with `compiler.basis.small_right_svd`'s two Gram passes (threshold reached) and
+    with the
     one-sided Jacobi SVD (not reached): the same ranks, free directions, coefficients and null
     spaces (their orthonormal bases may differ)."""
-    import evojax_motion.basis as basis_module
-    import evojax_motion.compile_interp as ci
+    import evojax_motion.compiler.basis as basis_module
+    import evojax_motion.compiler.interpolation as ci
 
     monkeypatch.setattr(basis_module, "jacobi_backend", lambda: True)
     rng = np.random.default_rng(11)

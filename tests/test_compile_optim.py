@@ -11,18 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import evojax_motion.basis as basis_module
-import evojax_motion.compile_optim as optim_module
-from evojax_motion.basis import pca_basis, select_neighbours
-from evojax_motion.compile_interp import Boundary
-from evojax_motion.compile_optim import (
+import evojax_motion.compiler.basis as basis_module
+import evojax_motion.compiler.optimisation as optim_module
+from evojax_motion.compiler.basis import pca_basis, select_neighbours
+from evojax_motion.compiler.interpolation import Boundary
+from evojax_motion.compiler.optimisation import (
     DEFAULT_ITERS,
     OptimSettings,
-    _bfgs_update,
-    _cholesky_solve,
-    _eigh_2x2,
-    _Result,
-    _subspace_step,
     cpu_fast_path,
     fused_search_gradient,
     gauss_newton_model,
@@ -38,11 +33,16 @@ from evojax_motion.compile_optim import (
     search_nodes,
     validate_limits,
 )
-from evojax_motion.dynamics import make_dynamics
 from evojax_motion.errors import UserError
-from evojax_motion.objective import torque_cost, trajectory_torques
-from evojax_motion.robot import load_robot
-from evojax_motion.timegrid import make_time_grid
+from evojax_motion.linalg.cholesky import cholesky_solve
+from evojax_motion.linalg.eigh2 import eigh_2x2
+from evojax_motion.model.dynamics import make_dynamics
+from evojax_motion.model.robot import load_robot
+from evojax_motion.motion.objective import torque_cost, trajectory_torques
+from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.solvers.base import SolverResult
+from evojax_motion.solvers.quasi_newton import bfgs_update
+from evojax_motion.solvers.steps import subspace_step
 
 # benchmarks/ is not a package of the project; its SLSQP reference is shared with the benchmark.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -325,7 +325,7 @@ def test_chunks_cover_the_batch_in_order():
     def solve(problems, z0, free, initial):
         sizes.append(z0.shape[0])
         tag = problems if initial is None else problems + initial[:, 0, 0]
-        return _Result(z=z0 + tag[:, None], f=tag, iterations=free[:, 0], converged=free[:, 1])
+        return SolverResult(z=z0 + tag[:, None], f=tag, iterations=free[:, 0], converged=free[:, 1])
 
     b, n = 11, 2
     problems = jnp.arange(b, dtype=jnp.float32) * 10
@@ -347,7 +347,8 @@ def test_chunks_cover_the_batch_in_order():
 
 def test_accelerator_loop_in_chunks_gives_the_whole_batch_results(setup, monkeypatch):
     """The fixture's 8 conditions (bad ones among them) optimised as on accelerators (a loop of
-    fixed trip count, `compile_optim.fixed_trip_loops`) and in chunks of 3 find what the whole
+    fixed trip count, `compiler.optimisation.fixed_trip_loops`) and in chunks of 3 find what the
+    whole
     batch found with the CPU's loop: passes after the batch is done change nothing, and each
     problem's result does not depend on its batch (up to rounding)."""
     s = setup
@@ -397,7 +398,7 @@ def _spd_batch(rng, b, n):
 
 
 def test_subspace_step_minimises_the_model_on_its_plane(x64):
-    """`_subspace_step` (the BFGS method's step), float64 against numpy: the Newton step where it
+    """`subspace_step` (the BFGS method's step), float64 against numpy: the Newton step where it
     fits; else the minimum of the model on the circle of the radius in the plane of ``g`` and
     the Newton step (dense search over the angle), for radii below the Cauchy point's length,
     between it and the Newton step's, and for a model with no plane (``B = 2 I``)."""
@@ -411,7 +412,7 @@ def test_subspace_step_minimises_the_model_on_its_plane(x64):
     assert (lc[:3] < ln[:3]).all()  # else the middle case below is not one
     radius = np.array([1.5 * ln[0], 0.5 * lc[1], 0.5 * (lc[2] + ln[2]), 0.5 * ln[3]])
     p, pred, decrement = (
-        np.asarray(a) for a in _subspace_step(*map(jnp.asarray, (bm, newton, g, radius)))
+        np.asarray(a) for a in subspace_step(*map(jnp.asarray, (bm, newton, g, radius)))
     )
 
     def model(x, i):
@@ -432,7 +433,7 @@ def test_subspace_step_minimises_the_model_on_its_plane(x64):
 
 
 def test_closed_form_2x2_eigh_matches_numpy(x64):
-    """`_eigh_2x2` against ``np.linalg.eigh``: random symmetric matrices, a multiple of the
+    """`eigh_2x2` against ``np.linalg.eigh``: random symmetric matrices, a multiple of the
     identity (any basis), diagonal ones in either order, and an ill-conditioned positive
     definite one, whose small eigenvalue must keep its relative accuracy (``mean - radius``
     errs by ~3e-5 there)."""
@@ -441,7 +442,7 @@ def test_closed_form_2x2_eigh_matches_numpy(x64):
     a[:3], b[:3], c[:3] = [2.0, 1.0, 3.0], [0.0, 0.0, 0.0], [2.0, 3.0, 1.0]
     a[3], b[3], c[3] = 1e12, 1e5, 1.0  # eigenvalues ~1e12 and ~0.99
     m = np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
-    e, v = (np.asarray(x) for x in _eigh_2x2(*map(jnp.asarray, (a, b, c))))
+    e, v = (np.asarray(x) for x in eigh_2x2(*map(jnp.asarray, (a, b, c))))
     ref = np.linalg.eigvalsh(m)
     np.testing.assert_allclose(e[:3], ref[:3], rtol=TOL_LINALG)
     np.testing.assert_allclose(e[3], ref[3], rtol=1e-8)
@@ -452,7 +453,7 @@ def test_closed_form_2x2_eigh_matches_numpy(x64):
 
 
 def test_bfgs_update_meets_the_secant_condition(x64):
-    """`_bfgs_update`: where accepted, the model meets the secant condition of its damped pair
+    """`bfgs_update`: where accepted, the model meets the secant condition of its damped pair
     (``B s = y`` where Powell's damping leaves ``y`` as it is) and stays symmetric; elsewhere it
     stays. One pair has ``s.y < 0``, so is damped and must keep the model positive definite."""
     rng = np.random.default_rng(2)
@@ -461,7 +462,7 @@ def test_bfgs_update_meets_the_secant_condition(x64):
     y[1] = -y[1]
     assert s[1] @ y[1] < 0
     accept = np.array([True, True, False, True])
-    new_b = np.asarray(_bfgs_update(*map(jnp.asarray, (bm, s, y, accept))))
+    new_b = np.asarray(bfgs_update(*map(jnp.asarray, (bm, s, y, accept))))
     for i in (0, 3):
         np.testing.assert_allclose(new_b[i] @ s[i], y[i], rtol=TOL_LINALG * 1e3)
     np.testing.assert_allclose(new_b, np.swapaxes(new_b, 1, 2), atol=TOL_LINALG)
@@ -471,13 +472,13 @@ def test_bfgs_update_meets_the_secant_condition(x64):
 
 
 def test_cholesky_solve_matches_numpy(x64):
-    """`_cholesky_solve` (unrolled, elementwise) against ``np.linalg.solve`` on positive definite
+    """`cholesky_solve` (unrolled, elementwise) against ``np.linalg.solve`` on positive definite
     matrices, one of them ill-conditioned (1e8); an indefinite matrix is flagged, not solved."""
     rng = np.random.default_rng(4)
     a, b = _spd_batch(rng, 5, 7), rng.standard_normal((5, 7))
     a[3] = a[3] @ np.diag(np.logspace(0, 4, 7)) @ a[3].T / 7 + 1e-4 * np.eye(7)
     a[4] = np.diag([1.0, 2.0, -1.0, 3.0, 1.0, 1.0, 1.0])
-    x, ok = (np.asarray(v) for v in _cholesky_solve(jnp.asarray(a), jnp.asarray(b)))
+    x, ok = (np.asarray(v) for v in cholesky_solve(jnp.asarray(a), jnp.asarray(b)))
     np.testing.assert_array_equal(ok, [True, True, True, True, False])
     expect = np.linalg.solve(a[:4], b[:4, :, None])[..., 0]
     cond = np.linalg.cond(a[:4])
@@ -761,7 +762,7 @@ def paper():
     """The catching config's generation 1 at `PAPER_CONDITIONS` conditions, as the benchmark
     builds it: ``(cfg, robot, dyn, db, conds)``."""
     from benchmarks.generations_per_sec import build
-    from evojax_motion.config import load_config
+    from evojax_motion.settings import load_config
 
     return build(load_config("configs/catch_ball.yaml", []), PAPER_CONDITIONS)
 

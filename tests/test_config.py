@@ -2,14 +2,14 @@
 
 import pytest
 
-from evojax_motion.config import (
+from evojax_motion.errors import UserError
+from evojax_motion.settings import (
     Config,
     config_from_dict,
     config_to_yaml,
     load_config,
     load_yaml,
 )
-from evojax_motion.errors import UserError
 
 
 def test_shipped_configs_load(tmp_path):

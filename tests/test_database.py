@@ -5,7 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evojax_motion.database import (
+from evojax_motion.errors import UserError
+from evojax_motion.model.robot import load_robot
+from evojax_motion.motion.database import (
     EVOLVED,
     HUMAN,
     DatabaseMeta,
@@ -14,8 +16,6 @@ from evojax_motion.database import (
     make_database,
     save_database,
 )
-from evojax_motion.errors import UserError
-from evojax_motion.robot import load_robot
 
 META = DatabaseMeta("toy", "<mujoco/>", ("a", "b"), "hand", True, "test data")
 

@@ -1,4 +1,4 @@
-"""Synthetic human-like catching demonstrations (`evojax_motion.demos`).
+"""Synthetic human-like catching demonstrations (`evojax_motion.demonstrations.synthetic`).
 
 The slow tests check the WHOLE default set (311 demonstrations, T = 100) of mahru_arm, generated
 once per module, plus a small arm6 set with its own catch region.
@@ -12,8 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from evojax_motion.database import HUMAN
-from evojax_motion.demos import (
+from evojax_motion.demonstrations.synthetic import (
     CITATIONS,
     POSTURE_STD_MAX_DEG,
     REGION_AZIMUTH_HALF_DEG,
@@ -25,11 +24,12 @@ from evojax_motion.demos import (
     generate_demonstrations,
     summarize_demonstrations,
 )
-from evojax_motion.dynamics import make_dynamics
 from evojax_motion.errors import UserError
-from evojax_motion.objective import torque_cost
-from evojax_motion.robot import load_robot, robot_from_mjcf_text
-from evojax_motion.timegrid import derivatives, make_time_grid
+from evojax_motion.model.dynamics import make_dynamics
+from evojax_motion.model.robot import load_robot, robot_from_mjcf_text
+from evojax_motion.motion.database import HUMAN
+from evojax_motion.motion.objective import torque_cost
+from evojax_motion.motion.timegrid import derivatives, make_time_grid
 
 TOL_END_SPEED = 1e-3  # [rad/s] joint speed at s = 0 and s = 1 (rest to rest)
 TOL_CATCH = 5e-3  # [m] hand at the end vs the catch point (the brief's limit)
@@ -355,11 +355,13 @@ def test_a_rest_posture_near_a_limit_is_named_before_any_trial():
 
 
 def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsys):
-    """With the compilation cache on, `workflow.demonstrations` synthesises a config's
+    """With the compilation cache on, `run.workflow.demonstrations` synthesises a config's
     demonstrations once and reads them back in later runs (bit for bit, no synthesis); a
     damaged file is reported and synthesised again; without a cache key nothing is kept."""
-    from evojax_motion import compile_cache, demos, workflow
-    from evojax_motion.config import load_config
+    from evojax_motion.demonstrations import synthetic as demos
+    from evojax_motion.run import cache as compile_cache
+    from evojax_motion.run import workflow
+    from evojax_motion.settings import load_config
 
     cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
     robot, dyn = workflow.make_robot_dynamics(cfg)

@@ -172,8 +172,8 @@ def reads(tokens) -> list[str]:
     if sub == "report":
         paths.append(tokens[2])
     if sub == "train" and len(tokens) > 2:
-        from evojax_motion.config import load_config
         from evojax_motion.errors import UserError
+        from evojax_motion.settings import load_config
 
         try:
             demos = load_config(ROOT / tokens[2]).demos_file
@@ -238,7 +238,7 @@ def _argv(tokens) -> list[str]:
         script = Path(sys.executable).parent / "evojax-motion"
         if script.is_file():
             return [str(script), *tokens[1:]]
-        main = "import sys; from evojax_motion.cli import main; sys.exit(main())"
+        main = "import sys; from evojax_motion.cli.entry import main; sys.exit(main())"
         return [sys.executable, "-c", main, *tokens[1:]]
     pytest.fail(f"no way to run `{' '.join(tokens)}`: list it in SUBSTITUTED or NOT_RUN")
 

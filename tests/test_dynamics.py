@@ -16,10 +16,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from evojax_motion.dynamics import BACKENDS, Dynamics, make_dynamics
-from evojax_motion.dynamics_rnea import FORMS, default_form, make_rnea
 from evojax_motion.errors import UserError
-from evojax_motion.robot import load_robot, robot_from_mjcf_text
+from evojax_motion.model.dynamics import BACKENDS, Dynamics, make_dynamics
+from evojax_motion.model.rnea import FORMS, default_form, make_rnea
+from evojax_motion.model.robot import load_robot, robot_from_mjcf_text
 
 TOL_TAU_F32 = 1e-4  # max |tau - tau_ref| / max |tau_ref|, float32
 TOL_TAU_F64 = 1e-10  # same, float64

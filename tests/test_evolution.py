@@ -9,14 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evojax_motion.database import EVOLVED, HUMAN, make_database
-from evojax_motion.evolution import (
+from evojax_motion.evolution.step import (
     EvolutionSettings,
     init_evolved_slots,
     rms_deviation_deg,
     select_survivors,
     write_slots,
 )
+from evojax_motion.motion.database import EVOLVED, HUMAN, make_database
 
 # --------------------------------------------------------------------------- survivor selection
 
@@ -186,14 +186,14 @@ def small():
     reaches to noisy comfortable postures), its condition set and a jitted generation step."""
     import jax
 
-    from evojax_motion.basis import BasisSettings
-    from evojax_motion.compile_optim import OptimSettings
-    from evojax_motion.conditions import make_conditions
-    from evojax_motion.dynamics import make_dynamics
-    from evojax_motion.evolution import make_generation_step
-    from evojax_motion.objective import torque_cost
-    from evojax_motion.robot import load_robot
-    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.compiler.basis import BasisSettings
+    from evojax_motion.compiler.optimisation import OptimSettings
+    from evojax_motion.evolution.conditions import make_conditions
+    from evojax_motion.evolution.step import make_generation_step
+    from evojax_motion.model.dynamics import make_dynamics
+    from evojax_motion.model.robot import load_robot
+    from evojax_motion.motion.objective import torque_cost
+    from evojax_motion.motion.timegrid import make_time_grid
 
     robot = load_robot("mahru_arm")
     dyn = make_dynamics(robot, "rnea")
@@ -267,9 +267,9 @@ def test_conditions_are_the_first_qualifying_candidates_in_key_order(small):
     candidates miss the IK by centimetres, so that several batches are needed."""
     import jax
 
-    from evojax_motion.conditions import _masked_mean, make_conditions, sampling_box
-    from evojax_motion.database import make_database
-    from evojax_motion.ik import solve_ik
+    from evojax_motion.evolution.conditions import _masked_mean, make_conditions, sampling_box
+    from evojax_motion.model.ik import solve_ik
+    from evojax_motion.motion.database import make_database
 
     robot, dyn, h, grid, basis = (small[k] for k in ("robot", "dyn", "humans", "grid", "basis"))
     humans = make_database(
@@ -303,9 +303,9 @@ def test_conditions_are_the_first_qualifying_candidates_in_key_order(small):
 
 
 def test_conditions_refuse_impossible_settings():
-    from evojax_motion.basis import BasisSettings
-    from evojax_motion.conditions import make_conditions, sampling_box
+    from evojax_motion.compiler.basis import BasisSettings
     from evojax_motion.errors import UserError
+    from evojax_motion.evolution.conditions import make_conditions, sampling_box
 
     humans = _humans(n=5)
     with pytest.raises(UserError, match=r"evolution\.region_margin"):
@@ -368,8 +368,8 @@ def test_generation_step_with_search_candidates_is_the_same_generation(small):
     and a resumed run (conditions from a checkpoint tree) gets the same lists again."""
     import jax
 
-    from evojax_motion.conditions import conditions_from_tree, conditions_to_tree
-    from evojax_motion.evolution import with_search_candidates
+    from evojax_motion.evolution.conditions import conditions_from_tree, conditions_to_tree
+    from evojax_motion.evolution.step import with_search_candidates
 
     s, step = small, small["step"]
     db0 = init_evolved_slots(s["humans"], s["cond"])
@@ -411,9 +411,9 @@ def test_generation_step_traces_exact_float32_products(small):
     rejected 99 % of the offspring for joint limits on an H200 (`precision`)."""
     import jax
 
-    from evojax_motion.compile_optim import OptimSettings
-    from evojax_motion.evolution import make_generation_step
-    from evojax_motion.parallel import make_sharded_generation_step
+    from evojax_motion.compiler.optimisation import OptimSettings
+    from evojax_motion.evolution.sharding import make_sharded_generation_step
+    from evojax_motion.evolution.step import make_generation_step
 
     robot, s = small["robot"], small
     db0 = init_evolved_slots(s["humans"], s["cond"])

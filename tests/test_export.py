@@ -10,7 +10,7 @@ import pytest
 from online_support import mj_inverse_torques, online_env, query
 
 from evojax_motion.errors import UserError
-from evojax_motion.export import (
+from evojax_motion.run.export import (
     column_names,
     make_trajectory_data,
     read_trajectory,

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evojax_motion.compile_optim import LIMIT_TOL, checked_limits
-from evojax_motion.database import make_database
+from evojax_motion.compiler.optimisation import LIMIT_TOL, checked_limits
 from evojax_motion.errors import UserError
+from evojax_motion.motion.database import make_database
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 SHARED = Path(__file__).resolve().parents[2] / "shared"
@@ -30,8 +30,8 @@ def peaks(dyn, grid, q, duration):
     """Peak |qd| and |tau| of each row, computed here: ``(n, J)`` x 2 (numpy)."""
     import jax
 
-    from evojax_motion.objective import trajectory_torques
-    from evojax_motion.timegrid import derivatives
+    from evojax_motion.motion.objective import trajectory_torques
+    from evojax_motion.motion.timegrid import derivatives
 
     def one(q1, d):
         qd, _ = derivatives(grid, q1, d)
@@ -46,13 +46,13 @@ def small_setup(robot, seed: int = 0):
     ``robot.posture_box`` near rest, their conditions and the pieces of a generation step."""
     import jax
 
-    from evojax_motion.basis import BasisSettings
-    from evojax_motion.compile_optim import OptimSettings
-    from evojax_motion.conditions import make_conditions
-    from evojax_motion.dynamics import make_dynamics
-    from evojax_motion.evolution import EvolutionSettings
-    from evojax_motion.objective import torque_cost
-    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.compiler.basis import BasisSettings
+    from evojax_motion.compiler.optimisation import OptimSettings
+    from evojax_motion.evolution.conditions import make_conditions
+    from evojax_motion.evolution.step import EvolutionSettings
+    from evojax_motion.model.dynamics import make_dynamics
+    from evojax_motion.motion.objective import torque_cost
+    from evojax_motion.motion.timegrid import make_time_grid
 
     dyn = make_dynamics(robot, "rnea")
     grid = make_time_grid(T_SAMPLES)
@@ -83,7 +83,7 @@ def run_generations(s, generations: int = 2, **limits):
     """``(db, [stats])`` after ``generations`` steps from empty evolved slots."""
     import jax
 
-    from evojax_motion.evolution import init_evolved_slots, make_generation_step
+    from evojax_motion.evolution.step import init_evolved_slots, make_generation_step
 
     r = s["robot"]
     step = make_generation_step(
@@ -113,7 +113,7 @@ def test_infinite_limits_mean_none_and_bad_ones_are_refused():
 
 @pytest.fixture(scope="module")
 def continuous():
-    from evojax_motion.robot import load_robot
+    from evojax_motion.model.robot import load_robot
 
     robot = load_robot(ASSETS / "continuous_arm.xml")
     assert robot.continuous.any() and not robot.continuous.all()
@@ -137,7 +137,7 @@ def test_generation_with_continuous_joints_respects_the_finite_limits(continuous
 
 @pytest.fixture(scope="module")
 def mahru():
-    from evojax_motion.robot import load_robot
+    from evojax_motion.model.robot import load_robot
 
     return small_setup(load_robot("mahru_arm"), seed=0)
 
@@ -172,7 +172,7 @@ def test_low_torque_and_velocity_limits_reject_offspring(mahru):
 
 
 def test_count_over_limits_of_human_rows(mahru):
-    from evojax_motion.feasibility import count_over_limits, over_limits_line
+    from evojax_motion.motion.feasibility import count_over_limits, over_limits_line
 
     s = mahru
     humans, robot = s["humans"], s["robot"]
@@ -194,8 +194,8 @@ def test_count_over_limits_of_human_rows(mahru):
 
 
 def test_metric_fields_are_the_generation_stats():
-    from evojax_motion.evolution import GenerationStats
-    from evojax_motion.train import METRIC_FIELDS
+    from evojax_motion.evolution.step import GenerationStats
+    from evojax_motion.run.training import METRIC_FIELDS
 
     assert METRIC_FIELDS[3:] == GenerationStats._fields
 
@@ -223,11 +223,11 @@ def test_train_on_the_unedited_gen3(tmp_path):
 def test_tiny_run_keeps_evolved_rows_within_every_limit(tmp_path):
     """configs/tiny.yaml trained: every valid evolved row of db_final is inside the joint ranges,
     and its peak |qd| and |tau| (recomputed here with the run's dynamics) within the limits."""
-    from evojax_motion.config import load_config
-    from evojax_motion.database import human_mask, load_database
-    from evojax_motion.timegrid import make_time_grid
-    from evojax_motion.train import run_training
-    from evojax_motion.workflow import make_robot_dynamics
+    from evojax_motion.motion.database import human_mask, load_database
+    from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.run.training import run_training
+    from evojax_motion.run.workflow import make_robot_dynamics
+    from evojax_motion.settings import load_config
 
     cfg = load_config(REPO / "configs" / "tiny.yaml")
     run_training(cfg, tmp_path / "run", progress=False)

@@ -1,4 +1,5 @@
-"""Batched damped-least-squares IK (`evojax_motion.ik`): accuracy, limits, redundancy, failure.
+"""Batched damped-least-squares IK (`evojax_motion.model.ik`): accuracy, limits, redundancy,
+failure.
 
 One batched `solve_ik` call (one compile) holds four groups of rows, each checked by its own test:
 reachable targets under two posture preferences, starts outside tight per-row joint boxes, and
@@ -13,9 +14,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from evojax_motion.dynamics import make_dynamics
-from evojax_motion.ik import solve_ik, solve_ik_trajectory
-from evojax_motion.robot import load_robot
+from evojax_motion.model.dynamics import make_dynamics
+from evojax_motion.model.ik import solve_ik, solve_ik_trajectory
+from evojax_motion.model.robot import load_robot
 
 TOL_REACH = 1e-3  # [m] accuracy required for reachable targets
 TOL_LIMIT = 1e-6  # [rad] iterates are clipped: no violation beyond float32 rounding

@@ -1,4 +1,4 @@
-"""``evojax-motion import`` end to end (evojax_motion.mocap.importer).
+"""``evojax-motion import`` end to end (evojax_motion.demonstrations.mocap.importer).
 
 Real data: the shipped UE ADL sample (Vicon CSV), imported for mahru_arm and arm6, and converted
 to C3D; with the published Kinova Gen3 model (continuous joints) from ``shared/robots`` beside
@@ -21,10 +21,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from evojax_motion.database import load_database
-from evojax_motion.errors import UserError
-from evojax_motion.mocap.c3d_file import write_c3d
-from evojax_motion.mocap.importer import (
+from evojax_motion.demonstrations.mocap.c3d_file import write_c3d
+from evojax_motion.demonstrations.mocap.importer import (
     EXIT_OK,
     EXIT_SKIPPED,
     EXIT_USER_ERROR,
@@ -33,8 +31,10 @@ from evojax_motion.mocap.importer import (
     format_report,
     import_trials,
 )
-from evojax_motion.mocap.vicon_csv import read_vicon_csv
-from evojax_motion.robot import load_robot
+from evojax_motion.demonstrations.mocap.vicon_csv import read_vicon_csv
+from evojax_motion.errors import UserError
+from evojax_motion.model.robot import load_robot
+from evojax_motion.motion.database import load_database
 
 SAMPLE = Path(__file__).resolve().parents[1] / "evojax_motion" / "data" / "ue_adl_sample"
 SHARED = Path(__file__).resolve().parents[2] / "shared"  # beside the repository, if there
@@ -161,7 +161,7 @@ def test_sample_imports_for_the_published_gen3():
     """Kinova Gen3 as published (continuous joints 1, 3, 5, 7; joints named joint_N) imports the
     sample with its defaults: hand targets in front of it and above its base, every primitive's
     continuous joints on the rest posture's branch."""
-    from evojax_motion.mocap import retarget as rt
+    from evojax_motion.demonstrations.mocap import retarget as rt
 
     robot = load_robot(_needs(GEN3, "the published Kinova Gen3 model"))
     res = import_trials(_params(paths=SUBSET, robot=str(GEN3)))
@@ -189,7 +189,7 @@ def test_ue_adl_onto_the_published_gen3():
     """The whole UE ADL subset (10 subjects x 2 tasks x 5 trials) onto the unedited Gen3 with
     the defaults (no --weights): >= 90 % imported, key-point RMS p95 <= 15 mm, every hand target
     in front of the robot and above its base."""
-    from evojax_motion.mocap import retarget as rt
+    from evojax_motion.demonstrations.mocap import retarget as rt
 
     robot = load_robot(_needs(GEN3, "the published Kinova Gen3 model"))
     data = _needs(UE_ADL, "the UE ADL data")
@@ -607,7 +607,7 @@ REACH_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reach_real.yam
 
 
 def test_reach_real_config_names_the_imported_database():
-    from evojax_motion.config import load_config
+    from evojax_motion.settings import load_config
 
     cfg = load_config(REACH_CONFIG)
     assert cfg.demos_file == "runs/reach_real_demos.npz"
@@ -622,8 +622,8 @@ def test_training_on_the_imported_sample_lowers_the_cost(tmp_path):
     every slot filled in generation 1 ends at the same or a lower eq. 5 cost, some lower (the
     mean over filled slots may rise as harder conditions fill). T = 32 keeps the compile time
     small."""
-    from evojax_motion.config import load_config
-    from evojax_motion.train import run_training
+    from evojax_motion.run.training import run_training
+    from evojax_motion.settings import load_config
 
     demos = tmp_path / "demos.npz"
     argv = ["--format", "vicon-csv", "--out", str(demos), "--quiet", "--samples", "32"]

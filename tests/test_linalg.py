@@ -30,7 +30,7 @@ TOL_JACOBI_SVD = 2e-6  # relative to s[0]: singular values and the rebuilt matri
 # the default sweeps; 2.1e-6 with one sweep fewer (they build the BC solve's binding rows).
 TOL_U_ORTHO = 5e-7
 # The BC rows (q, q at the end, end slopes) of one joint of a paper problem in q-orthonormal
-# coordinates (`compile_interp._joint_system`, leak rule; built on an H100): graded over
+# coordinates (`compiler.interpolation._joint_system`, leak rule; built on an H100): graded over
 # four orders with slope rows near `BC_LEAK`; one-sided Jacobi needed 5 sweeps here.
 PAPER_BC_ROWS = np.array(
     [

@@ -1,4 +1,5 @@
-"""Motion-capture readers and marker processing (evojax_motion.mocap: readers, markers).
+"""Motion-capture readers and marker processing (evojax_motion.demonstrations.mocap: readers,
+markers).
 
 Real files: the shipped UE ADL sample (Vicon Nexus CSV, processed angle CSV). Other formats: tiny
 valid files written here (BVH, ASF/AMC, angle CSV; C3D through the ``c3d`` library's writer) whose
@@ -11,19 +12,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evojax_motion.errors import UserError
-from evojax_motion.mocap import markers as mk
-from evojax_motion.mocap.angles_csv import (
+from evojax_motion.demonstrations.mocap import markers as mk
+from evojax_motion.demonstrations.mocap.angles_csv import (
     AngleSource,
     angles_to_robot,
     load_angle_map,
     read_angles_csv,
 )
-from evojax_motion.mocap.asf_amc import read_amc, read_asf, read_asf_amc
-from evojax_motion.mocap.bvh import read_bvh
-from evojax_motion.mocap.c3d_file import read_c3d, write_c3d
-from evojax_motion.mocap.markers import MarkerData, TrialError
-from evojax_motion.mocap.vicon_csv import read_vicon_csv
+from evojax_motion.demonstrations.mocap.asf_amc import read_amc, read_asf, read_asf_amc
+from evojax_motion.demonstrations.mocap.bvh import read_bvh
+from evojax_motion.demonstrations.mocap.c3d_file import read_c3d, write_c3d
+from evojax_motion.demonstrations.mocap.markers import MarkerData, TrialError
+from evojax_motion.demonstrations.mocap.vicon_csv import read_vicon_csv
+from evojax_motion.errors import UserError
 
 SAMPLE = Path(__file__).resolve().parents[1] / "evojax_motion" / "data" / "ue_adl_sample"
 TRIAL = SAMPLE / "ADL004" / "ADL004FR1.csv"

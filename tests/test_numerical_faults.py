@@ -24,16 +24,16 @@ GENERATIONS = 3
 
 @pytest.fixture(scope="module")
 def tiny():
-    """Generation 0 of configs/tiny.yaml (as `train.run_training` builds it), its jitted
+    """Generation 0 of configs/tiny.yaml (as `run.training.run_training` builds it), its jitted
     generation step, and generation 1 without faults."""
     import jax
 
-    from evojax_motion.config import load_config
-    from evojax_motion.database import HUMAN
-    from evojax_motion.parallel import make_sharded_generation_step
-    from evojax_motion.timegrid import make_time_grid
-    from evojax_motion.train import initial_state
-    from evojax_motion.workflow import make_robot_dynamics
+    from evojax_motion.evolution.sharding import make_sharded_generation_step
+    from evojax_motion.motion.database import HUMAN
+    from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.run.training import initial_state
+    from evojax_motion.run.workflow import make_robot_dynamics
+    from evojax_motion.settings import load_config
 
     cfg = load_config(REPO / "configs" / "tiny.yaml")
     robot, dyn = make_robot_dynamics(cfg)
@@ -62,7 +62,7 @@ class _Tiny(dict):
 
 def _neighbours(tiny, db, cond) -> np.ndarray:
     """``(m, k)`` database rows each condition's basis uses in generation 1."""
-    from evojax_motion.basis import select_neighbours
+    from evojax_motion.compiler.basis import select_neighbours
 
     b = tiny["cfg"].basis
     nb = select_neighbours(db.condition, db.valid, cond.target, b.neighbours, b.radius, b.w_pos)
@@ -88,9 +88,9 @@ def _finite_rows(db) -> bool:
 )
 @given(data=st.data())
 def test_faults_are_isolated_and_never_reach_the_database(tiny, data):
-    from evojax_motion.database import nonfinite_rows
-    from evojax_motion.evolution import boundary_errors
-    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.evolution.step import boundary_errors
+    from evojax_motion.motion.database import nonfinite_rows
+    from evojax_motion.motion.timegrid import make_time_grid
 
     db0, cond0, n, run = tiny["db"], tiny["cond"], tiny["n"], tiny["run"]
     robot, evo = tiny["robot"], tiny["cfg"].evolution

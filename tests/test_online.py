@@ -21,10 +21,10 @@ from online_support import (
     reach_checker,
 )
 
-from evojax_motion.basis import pca_basis, select_neighbours
-from evojax_motion.compile_interp import Boundary, basis_functions, compile_interpolation
+from evojax_motion.compiler.basis import pca_basis, select_neighbours
+from evojax_motion.compiler.interpolation import Boundary, basis_functions, compile_interpolation
 from evojax_motion.errors import UserError
-from evojax_motion.online import (
+from evojax_motion.online.generation import (
     OnlineSettings,
     enforce_limits,
     make_online_generator,
@@ -72,10 +72,10 @@ def test_settings_validation():
 def test_accelerator_path_matches_lapack(env, near, monkeypatch):
     """The elementwise Jacobi PCA and BC solves (what GPUs run) give the LAPACK path's motions,
     with the projection on (limits narrowed so that every motion needs it) and off."""
-    import evojax_motion.basis as basis_module
-    import evojax_motion.compile_interp as interp_module
-    from evojax_motion.online import joint_limits_f32, online_query, to_numpy
-    from evojax_motion.precision import exact_matmuls
+    import evojax_motion.compiler.basis as basis_module
+    import evojax_motion.compiler.interpolation as interp_module
+    from evojax_motion.linalg.precision import exact_matmuls
+    from evojax_motion.online.generation import joint_limits_f32, online_query, to_numpy
 
     targets, _ = near
     lower, upper = joint_limits_f32(env.robot)
@@ -103,7 +103,7 @@ def test_accelerator_path_matches_lapack(env, near, monkeypatch):
 
 
 def test_cpu_fast_path_matches_the_default_program(env, near):
-    """The generator users get (on CPU: `dynamics.unfused_cpu_program`) answers like the one
+    """The generator users get (on CPU: `model.dynamics.unfused_cpu_program`) answers like the one
     compiled with XLA's default options and the default RNEA layout."""
     targets, ref = near
     plain = make_online_generator(env.robot, env.dyn, env.grid, BASIS, SETTINGS, fast_path=False)
@@ -183,8 +183,8 @@ def test_neighbours_prefer_evolved_primitives(env, near):
     """With enough evolved (robot-optimised) primitives inside the radius, the basis is built
     from them alone: the motion equals the one from a database holding only those; the learned
     region (n_inside, the gap) still counts every valid primitive."""
-    from evojax_motion.database import EVOLVED
-    from evojax_motion.online import to_numpy
+    from evojax_motion.motion.database import EVOLVED
+    from evojax_motion.online.generation import to_numpy
 
     targets, r_all = near
     origin = np.where(np.arange(len(env.db.valid)) % 2 == 0, EVOLVED, env.db.origin)
@@ -292,7 +292,7 @@ def test_limit_projection_is_the_minimal_null_space_step():
     the mean, the 4 components and the constant, and its step is SciPy's minimum-norm one."""
     from scipy.optimize import minimize
 
-    from evojax_motion.compile_interp import solve_boundary
+    from evojax_motion.compiler.interpolation import solve_boundary
 
     env, basis, bc, q, enforce = _limit_problem()
     j = 1
@@ -347,8 +347,8 @@ def test_limit_projection_is_the_minimal_null_space_step():
 
 def _cli(argv):
     """Run ``evojax-motion <argv>`` in-process with the online subcommands; exit status."""
-    from evojax_motion.cli import _Parser
-    from evojax_motion.online_cli import add_online_parsers
+    from evojax_motion.cli.entry import _Parser
+    from evojax_motion.cli.online import add_online_parsers
 
     parser = _Parser(prog="evojax-motion")
     add_online_parsers(parser.add_subparsers(dest="command", required=True, parser_class=_Parser))
@@ -362,7 +362,7 @@ def _cli(argv):
 
 @pytest.fixture(scope="module")
 def db_file(tmp_path_factory, env):
-    from evojax_motion.database import save_database
+    from evojax_motion.motion.database import save_database
 
     path = tmp_path_factory.mktemp("online") / "db.npz"
     save_database(path, env.db, env.meta)
@@ -378,8 +378,8 @@ def test_cli_generate_csv_torques_equal_mj_inverse(env, db_file, tmp_path, capsy
     """``evojax-motion generate`` on the cached compilations (the loader has its own test)."""
     from online_support import cli_session
 
-    from evojax_motion import online_cli
-    from evojax_motion.export import read_trajectory
+    from evojax_motion.cli import online as online_cli
+    from evojax_motion.run.export import read_trajectory
 
     opened = cli_session(env, db_file)
     monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
@@ -411,7 +411,7 @@ def test_load_online_model_rebuilds_robot_and_settings(env, db_file, tmp_path):
     from a run directory's config.yaml (no compilation involved)."""
     import shutil
 
-    from evojax_motion.online import load_online_model
+    from evojax_motion.online.generation import load_online_model
 
     model = load_online_model(db_file)
     assert model.robot.joint_names == env.robot.joint_names
@@ -430,7 +430,7 @@ def test_load_online_model_rebuilds_robot_and_settings(env, db_file, tmp_path):
 
 def test_cli_parser_shape():
     """The subcommands and their required options (cheap: no query runs)."""
-    from evojax_motion.online_cli import add_online_parsers
+    from evojax_motion.cli.online import add_online_parsers
 
     parser = argparse.ArgumentParser()
     add_online_parsers(parser.add_subparsers(dest="command"))
@@ -447,8 +447,8 @@ def test_cli_parser_shape():
 @pytest.mark.slow
 def test_cli_generate_end_to_end(env, db_file, tmp_path, capsys):
     """The real command: loads the file, rebuilds the robot, compiles its own query."""
-    from evojax_motion import online_cli
-    from evojax_motion.export import read_trajectory
+    from evojax_motion.cli import online as online_cli
+    from evojax_motion.run.export import read_trajectory
 
     online_cli._session.cache_clear()
     target = [f"{v:.4f}" for v in env.db.condition[7] + 0.005]

@@ -19,7 +19,7 @@ from online_support import (
     query,
 )
 
-from evojax_motion.online import TimeLaw, explain_unusable, shortest_duration
+from evojax_motion.online.generation import TimeLaw, explain_unusable, shortest_duration
 
 HEADROOM = SETTINGS.limit_headroom
 TOL_SEARCH = 1e-5  # relative: the scan + 24 bisection steps vs a closed-form shortest duration
@@ -35,7 +35,7 @@ def env():
 
 @pytest.fixture(scope="module")
 def db_file(tmp_path_factory, env):
-    from evojax_motion.database import save_database
+    from evojax_motion.motion.database import save_database
 
     path = tmp_path_factory.mktemp("limits") / "db.npz"
     save_database(path, env.db, env.meta)
@@ -118,8 +118,8 @@ def test_cli_generate_slows_a_too_fast_motion(env, db_file, tmp_path, capsys, mo
     comment lines carry the margins."""
     from test_online import _cli
 
-    from evojax_motion import online_cli
-    from evojax_motion.export import read_trajectory
+    from evojax_motion.cli import online as online_cli
+    from evojax_motion.run.export import read_trajectory
 
     opened = cli_session(env, db_file)
     monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
@@ -150,8 +150,8 @@ def test_catch_that_cannot_arrive_in_time_exits_2_with_figures(
     needs, the time it has, and the binding joint's figures; nothing is written."""
     from test_online import _cli
 
-    from evojax_motion import online_cli
-    from evojax_motion.catching import CatchSettings, make_catcher
+    from evojax_motion.cli import online as online_cli
+    from evojax_motion.online.catching import CatchSettings, make_catcher
 
     rushed = CatchSettings(**CATCH_KW, speedup=4.0)
     fn = make_catcher(env.robot, env.dyn, env.grid, BASIS, SETTINGS, rushed)
@@ -188,10 +188,10 @@ def test_gravity_over_a_torque_limit_has_no_motion(env, db_file, tmp_path, capsy
     duration helps; the refusal names the joint and the torque it needs."""
     from test_online import _cli
 
-    from evojax_motion import online_cli
-    from evojax_motion.dynamics import make_dynamics
-    from evojax_motion.online import MAX_DURATION, OnlineModel, make_online_generator
-    from evojax_motion.robot import robot_from_mjcf_text
+    from evojax_motion.cli import online as online_cli
+    from evojax_motion.model.dynamics import make_dynamics
+    from evojax_motion.model.robot import robot_from_mjcf_text
+    from evojax_motion.online.generation import MAX_DURATION, OnlineModel, make_online_generator
 
     mjcf = env.robot.mjcf.replace(
         'range="-0.872665 2.967060"\n               actuatorfrcrange="-80 80"',
@@ -231,7 +231,7 @@ TOL_ROUND = 1e-4  # [m] the written meta rounds coordinates to 0.1 mm
 def _hand_cli(env, db_file, monkeypatch):
     from test_online import _cli
 
-    from evojax_motion import online_cli
+    from evojax_motion.cli import online as online_cli
 
     opened = cli_session(env, db_file)
     monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
@@ -242,7 +242,7 @@ def _written_hand(env, path) -> np.ndarray:
     """Where the written final posture puts the hand, by C MuJoCo's mj_kinematics: ``(3,)``."""
     from online_support import hand_positions
 
-    from evojax_motion.export import read_trajectory
+    from evojax_motion.run.export import read_trajectory
 
     return hand_positions(env.robot, read_trajectory(path).q[-1:])[0]
 
@@ -272,7 +272,7 @@ def test_generate_unreachable_target_exits_2_with_the_miss(
     assert cli([*argv, "--nearest"]) == 0
     printed = capsys.readouterr().out
     assert "using it (--nearest)" in printed
-    from evojax_motion.export import read_trajectory
+    from evojax_motion.run.export import read_trajectory
 
     point = np.asarray(read_trajectory(out).meta["target"])
     assert str([round(float(v), 4) for v in point]) in printed  # the point the output reports
@@ -301,7 +301,7 @@ def test_projection_that_moves_the_hand_off_target_is_an_error(env, db_file, tmp
 
     from online_support import hand_positions
 
-    from evojax_motion import online_cli
+    from evojax_motion.cli import online as online_cli
 
     model = cli_session(env, db_file)[0]
     motion = query(env, env.db.condition[5:6] + 0.01)

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evojax_motion import atomic
-from evojax_motion.cli import main, os_error_line
+from evojax_motion.cli.entry import main, os_error_line
+from evojax_motion.run import atomic
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "tiny.yaml"
@@ -136,7 +136,7 @@ def test_a_refused_write_is_one_line_and_leaves_nothing(
 
 
 def _savez(path: Path) -> Path:
-    from evojax_motion.database import atomic_savez
+    from evojax_motion.motion.database import atomic_savez
 
     return atomic_savez(path, {"a": np.arange(3)})
 
@@ -151,7 +151,7 @@ WRITERS = {
 def test_a_full_disk_during_a_write_names_the_file_and_keeps_the_old_one(
     tmp_path, monkeypatch, writer
 ):
-    """The disk fills up after the command's check (`atomic.check_writable`): the write fails
+    """The disk fills up after the command's check (`run.atomic.check_writable`): the write fails
     naming the file (not its temporary file; ``write``/``fsync`` name none), the previous file
     is unchanged and no temporary file is left."""
     path = tmp_path / "out.file"

@@ -37,7 +37,7 @@ COLLECTIVES = ("all-gather", "all-reduce", "all-to-all", "collective-permute", "
 
 @pytest.mark.parametrize("value", [0, -2, True, 1.5, "all"])
 def test_settings_reject_bad_devices(value):
-    from evojax_motion.parallel import ParallelSettings
+    from evojax_motion.evolution.sharding import ParallelSettings
 
     with pytest.raises(ValueError, match=r"^devices: expected"):
         ParallelSettings(devices=value)
@@ -47,7 +47,7 @@ def test_settings_defaults_and_device_resolution():
     import jax
 
     from evojax_motion.errors import UserError
-    from evojax_motion.parallel import ParallelSettings, resolve_devices
+    from evojax_motion.evolution.sharding import ParallelSettings, resolve_devices
 
     assert ParallelSettings().devices is None and ParallelSettings(devices=8).devices == 8
     assert resolve_devices(None) == jax.devices()
@@ -58,14 +58,14 @@ def test_settings_defaults_and_device_resolution():
 
 @pytest.mark.parametrize("m, multiple, expected", [(5, 4, 8), (8, 4, 8), (1, 3, 3), (7, 1, 7)])
 def test_padded_count(m, multiple, expected):
-    from evojax_motion.parallel import padded_count
+    from evojax_motion.evolution.sharding import padded_count
 
     assert padded_count(m, multiple) == expected
 
 
 def _conditions(m, t=4, j=3, seed=0):
-    from evojax_motion.compile_interp import Boundary
-    from evojax_motion.conditions import Conditions
+    from evojax_motion.compiler.interpolation import Boundary
+    from evojax_motion.evolution.conditions import Conditions
 
     rng = np.random.default_rng(seed)
 
@@ -84,7 +84,7 @@ def _conditions(m, t=4, j=3, seed=0):
 def test_pad_conditions_copies_the_last_and_marks_it():
     import jax
 
-    from evojax_motion.parallel import is_padding, pad_conditions
+    from evojax_motion.evolution.sharding import is_padding, pad_conditions
 
     cond = _conditions(5)
     padded, n_real = pad_conditions(cond, 4)
@@ -107,9 +107,9 @@ def test_pad_conditions_copies_the_last_and_marks_it():
 def test_padded_slots_are_never_neighbours():
     """The padded slots are empty and have a NaN condition: even with fewer valid entries than k,
     the neighbour search never selects or counts them."""
-    from evojax_motion.basis import select_neighbours
-    from evojax_motion.database import make_database
-    from evojax_motion.parallel import pad_database
+    from evojax_motion.compiler.basis import select_neighbours
+    from evojax_motion.evolution.sharding import pad_database
+    from evojax_motion.motion.database import make_database
 
     rng = np.random.default_rng(1)
     db = make_database(rng.normal(size=(3, 4, 2)), np.ones(3), rng.normal(size=(3, 3)) * 0.01)
@@ -131,7 +131,7 @@ def test_padded_slots_are_never_neighbours():
 
 
 def _stats(**values):
-    from evojax_motion.evolution import GenerationStats
+    from evojax_motion.evolution.step import GenerationStats
 
     base = dict.fromkeys(GenerationStats._fields, np.float32(1.5))
     base.update(values)
@@ -139,7 +139,7 @@ def _stats(**values):
 
 
 def test_unpad_stats_removes_exactly_the_padding():
-    from evojax_motion.parallel import unpad_stats
+    from evojax_motion.evolution.sharding import unpad_stats
 
     stats = _stats(
         n_rejected_nonfinite=np.int32(4),
@@ -161,8 +161,8 @@ def test_combine_stats_weights_by_offspring_past_every_rejection():
     (torque and velocity ones included)."""
     import jax
 
-    from evojax_motion.evolution import GenerationStats
-    from evojax_motion.parallel import CONDITION_AXIS, combine_stats
+    from evojax_motion.evolution.sharding import CONDITION_AXIS, combine_stats
+    from evojax_motion.evolution.step import GenerationStats
 
     n_local = 10
     a = _stats(n_rejected_torque=np.int32(3), n_rejected_velocity=np.int32(2),
@@ -291,16 +291,16 @@ def _problem():
     import jax
     import jax.numpy as jnp
 
-    from evojax_motion.basis import BasisSettings
-    from evojax_motion.compile_interp import Boundary
-    from evojax_motion.compile_optim import OptimSettings
-    from evojax_motion.conditions import Conditions
-    from evojax_motion.database import Database, make_database
-    from evojax_motion.dynamics import make_dynamics
-    from evojax_motion.evolution import EvolutionSettings, init_evolved_slots
-    from evojax_motion.objective import torque_cost
-    from evojax_motion.robot import load_robot
-    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.compiler.basis import BasisSettings
+    from evojax_motion.compiler.interpolation import Boundary
+    from evojax_motion.compiler.optimisation import OptimSettings
+    from evojax_motion.evolution.conditions import Conditions
+    from evojax_motion.evolution.step import EvolutionSettings, init_evolved_slots
+    from evojax_motion.model.dynamics import make_dynamics
+    from evojax_motion.model.robot import load_robot
+    from evojax_motion.motion.database import Database, make_database
+    from evojax_motion.motion.objective import torque_cost
+    from evojax_motion.motion.timegrid import make_time_grid
 
     assert jax.config.read("jax_enable_x64")
     f64 = np.float64
@@ -350,7 +350,7 @@ def _problem():
 
 def _generation(step, db, cond, g: int):
     """One generation: ``(db (numpy), stats dict)``."""
-    from evojax_motion.database import Database
+    from evojax_motion.motion.database import Database
 
     db, stats = step(db, cond, np.int32(g))
     return Database(*(np.asarray(a) for a in db)), {
@@ -374,7 +374,7 @@ def _child_multihost() -> dict:
     """One of 2 processes (2 devices each): the 4-way sharded step on the global mesh."""
     import jax
 
-    from evojax_motion.parallel import (
+    from evojax_motion.evolution.sharding import (
         initialize_distributed,
         make_sharded_generation_step,
         same_on_every_process,
@@ -396,9 +396,9 @@ def _child_single() -> dict:
 
     import jax
 
-    from evojax_motion.compile_optim import OptimSettings
-    from evojax_motion.evolution import make_generation_step
-    from evojax_motion.parallel import make_sharded_generation_step, padded_count
+    from evojax_motion.compiler.optimisation import OptimSettings
+    from evojax_motion.evolution.sharding import make_sharded_generation_step, padded_count
+    from evojax_motion.evolution.step import make_generation_step
 
     assert jax.device_count() == N_DEVICES
     args, db0, cond = _problem()

@@ -1,7 +1,8 @@
 """Published arms as a user brings them: MuJoCo Menagerie's Kinova Gen3 (continuous joints 1, 3,
 5 and 7) and UFACTORY xArm7, unedited, with a config that names the model file and nothing else.
 
-Every ``demos`` setting takes its default (derived from the model: `demos.derive_defaults`);
+Every ``demos`` setting takes its default (derived from the model:
+`demonstrations.synthetic.derive_defaults`);
 ``demos`` and a 3-generation ``train`` of 40 conditions run at tiny sizes (`configs/tiny.yaml`).
 The models live in the folder ``shared/robots`` beside the repository; without it these tests
 are skipped.
@@ -14,10 +15,10 @@ import numpy as np
 import pytest
 import yaml
 
-from evojax_motion.cli import main
-from evojax_motion.database import human_mask, load_database
-from evojax_motion.demos import derive_defaults
-from evojax_motion.robot import load_robot
+from evojax_motion.cli.entry import main
+from evojax_motion.demonstrations.synthetic import derive_defaults
+from evojax_motion.model.robot import load_robot
+from evojax_motion.motion.database import human_mask, load_database
 
 ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
 TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"

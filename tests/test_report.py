@@ -2,7 +2,8 @@
 
 A synthetic run folder is built in numpy + C MuJoCo (no training, no IK): human-like rest-to-posture
 motions of mahru_arm, conditions from forward kinematics, two "generations" and their metrics, in
-exactly the layout ``train.run_training`` writes. The report must write every figure as a readable,
+exactly the layout ``run.training.run_training`` writes. The report must write every figure as a
+readable,
 non-blank image, name the files a damaged folder lacks (exit 1) and refuse a folder without a run
 (exit 2). The renderer's camera and its stick-figure fallback are checked against MuJoCo itself.
 """
@@ -18,11 +19,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from evojax_motion import render as rnd
-from evojax_motion import report
-from evojax_motion.config import config_to_yaml, load_config
-from evojax_motion.database import DatabaseMeta, make_database, save_database
-from evojax_motion.robot import load_robot
+from evojax_motion.model.robot import load_robot
+from evojax_motion.motion.database import DatabaseMeta, make_database, save_database
+from evojax_motion.report import build as report
+from evojax_motion.report import render as rnd
+from evojax_motion.settings import config_to_yaml, load_config
 
 T, N_HUMAN, M = 24, 40, 6
 TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
@@ -54,7 +55,7 @@ def _motions(rng, robot, qf, bump):
 
 
 def make_fake_run(path: Path, generations: int = 2) -> Path:
-    """A complete run folder (the files `train.run_training` writes) without training."""
+    """A complete run folder (the files `run.training.run_training` writes) without training."""
     robot = load_robot("mahru_arm")
     rng = np.random.default_rng(0)
     j = robot.n_joints
@@ -199,7 +200,7 @@ def test_bad_options_write_nothing(fake_run, tmp_path):
 
 def test_cli_exit_status_for_no_run(tmp_path, capsys):
     """Through the console script when the lead has wired ``report`` into cli.py."""
-    from evojax_motion import cli
+    from evojax_motion.cli import entry as cli
 
     try:
         cli.build_parser().parse_args(["report", str(tmp_path)])
@@ -338,7 +339,7 @@ BASELINE = {"human_only_cost_mean": 14.0, "human_only_torque_sum_mean": 11.5}
 def test_fig5_legend_names_every_curve(baseline):
     import matplotlib.pyplot as plt
 
-    from evojax_motion.plots import costs_figure
+    from evojax_motion.report.plots import costs_figure
 
     fig = costs_figure(_metrics([13.7, 13.45, 13.36, 13.36], [10, 11, 11, 11]), baseline)
     try:
@@ -354,7 +355,7 @@ def test_fig5_legend_names_every_curve(baseline):
 def test_joint_angle_legend_names_every_curve():
     import matplotlib.pyplot as plt
 
-    from evojax_motion.plots import joint_angles_figure
+    from evojax_motion.report.plots import joint_angles_figure
 
     rng = np.random.default_rng(0)
     q = [rng.normal(size=(T, 3)) for _ in range(3)]

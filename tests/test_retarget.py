@@ -1,6 +1,7 @@
-"""Retargeting (evojax_motion.mocap.retarget): key points, scaling, batched key-point IK,
-segmentation and resampling. References: C MuJoCo kinematics, trajectories the robot itself
-produced (their key points are reachable, so the IK must find them), analytic speed profiles."""
+"""Retargeting (evojax_motion.demonstrations.mocap.retarget): key points, scaling, batched
+key-point IK, segmentation and resampling. References: C MuJoCo kinematics, trajectories the robot
+itself produced (their key points are reachable, so the IK must find them), analytic speed
+profiles."""
 
 import functools
 from pathlib import Path
@@ -10,13 +11,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from evojax_motion.dynamics import make_dynamics
+from evojax_motion.demonstrations.mocap import retarget as rt
+from evojax_motion.demonstrations.mocap.markers import TrialError
 from evojax_motion.errors import UserError
-from evojax_motion.mocap import retarget as rt
-from evojax_motion.mocap.markers import TrialError
-from evojax_motion.objective import torque_cost
-from evojax_motion.robot import load_robot
-from evojax_motion.timegrid import make_time_grid
+from evojax_motion.model.dynamics import make_dynamics
+from evojax_motion.model.robot import load_robot
+from evojax_motion.motion.objective import torque_cost
+from evojax_motion.motion.timegrid import make_time_grid
 
 TOL_FK = 1e-5  # [m] float32 FK vs C MuJoCo
 TOL_IK = 1e-3  # [m] reachable key points, after the warm-up and 4 LM iterations per frame

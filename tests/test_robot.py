@@ -1,4 +1,5 @@
-"""Shipped robot models and `evojax_motion.robot`: limits, de Leva inertias, reach, user errors."""
+"""Shipped robot models and `evojax_motion.model.robot`: limits, de Leva inertias, reach, user
+errors."""
 
 import pickle
 from pathlib import Path
@@ -9,7 +10,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from evojax_motion.errors import UserError
-from evojax_motion.robot import (
+from evojax_motion.model.robot import (
     MODELS_DIR,
     REST_MARGIN,
     SHIPPED_ROBOTS,

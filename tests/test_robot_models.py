@@ -1,4 +1,4 @@
-"""Robot models as users bring them (`evojax_motion.robot`, `evojax-motion robot`).
+"""Robot models as users bring them (`evojax_motion.model.robot`, `evojax-motion robot`).
 
 Published arms loaded unedited (../shared/robots: Kinova Gen3 with continuous joints and meshes,
 UFACTORY xArm7 with and without its gripper; skipped where absent); a model with an include, a
@@ -20,13 +20,10 @@ import yaml
 from PIL import Image
 from scipy.spatial import ConvexHull
 
-from evojax_motion.cli import main
-from evojax_motion.config import config_from_dict
-from evojax_motion.database import DatabaseMeta, load_database, make_database, save_database
-from evojax_motion.dynamics import make_dynamics
+from evojax_motion.cli.entry import main
 from evojax_motion.errors import UserError
-from evojax_motion.render import robot_from_meta, scene_model
-from evojax_motion.robot import (
+from evojax_motion.model.dynamics import make_dynamics
+from evojax_motion.model.robot import (
     END_EFFECTOR_SITE,
     MODELS_DIR,
     REST_MARGIN,
@@ -34,7 +31,10 @@ from evojax_motion.robot import (
     mj_inverse_torques,
     robot_from_mjcf_text,
 )
-from evojax_motion.workflow import make_robot
+from evojax_motion.motion.database import DatabaseMeta, load_database, make_database, save_database
+from evojax_motion.report.render import robot_from_meta, scene_model
+from evojax_motion.run.workflow import make_robot
+from evojax_motion.settings import config_from_dict
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "robots"
 ASSETS = Path(__file__).resolve().parent / "assets"

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from evojax_motion import run_lock
 from evojax_motion.errors import UserError
-from evojax_motion.run_lock import LOCK_FILE, hold_run_folder
+from evojax_motion.run import lock as run_lock
+from evojax_motion.run.lock import LOCK_FILE, hold_run_folder
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.skipif(run_lock.fcntl is None, reason="no fcntl: runs are not locked")
@@ -62,7 +62,7 @@ def test_folders_made_for_nothing_are_removed_again(tmp_path):
 
 _HOLDER = """
 import sys, time
-from evojax_motion.run_lock import hold_run_folder
+from evojax_motion.run.lock import hold_run_folder
 with hold_run_folder(sys.argv[1]):
     print("held", flush=True)
     time.sleep(600)
@@ -145,7 +145,7 @@ def test_a_file_system_without_locks_runs_unlocked_after_a_warning(tmp_path, mon
 def test_a_lock_file_does_not_make_a_folder_a_run(tmp_path):
     """A new run may start in a folder that holds only a lock file (a run killed before it
     wrote anything else leaves one)."""
-    from evojax_motion.train import check_run_dir
+    from evojax_motion.run.training import check_run_dir
 
     run = tmp_path / "run"
     run.mkdir()

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from online_support import catcher, cli_session, mj_inverse_torques, online_env, query
 
-from evojax_motion.simulate import (
+from evojax_motion.online.simulate import (
     Ball,
     Plan,
     SimSettings,
@@ -158,7 +158,7 @@ def test_settings_validation():
 
 @pytest.fixture(scope="module")
 def db_file(tmp_path_factory, env):
-    from evojax_motion.database import save_database
+    from evojax_motion.motion.database import save_database
 
     path = tmp_path_factory.mktemp("simulate") / "db.npz"
     save_database(path, env.db, env.meta)
@@ -167,9 +167,9 @@ def db_file(tmp_path_factory, env):
 
 def _cli(argv):
     """``evojax-motion <argv>`` in-process with the ``simulate`` subcommand; exit status."""
-    from evojax_motion.cli import _Parser
+    from evojax_motion.cli.entry import _Parser
+    from evojax_motion.cli.simulate import add_simulate_parser
     from evojax_motion.errors import UserError
-    from evojax_motion.simulate_cli import add_simulate_parser
 
     parser = _Parser(prog="evojax-motion")
     add_simulate_parser(parser.add_subparsers(dest="command", required=True, parser_class=_Parser))
@@ -186,7 +186,7 @@ def test_cli_simulate(env, throw, db_file, tmp_path, capsys, monkeypatch):
     input is one line, exit 2, nothing written."""
     from PIL import Image
 
-    from evojax_motion import online_cli
+    from evojax_motion.cli import online as online_cli
 
     monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
     opened = cli_session(env, db_file)

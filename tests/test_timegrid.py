@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from evojax_motion.timegrid import derivatives, fornberg_weights, make_time_grid
+from evojax_motion.motion.timegrid import derivatives, fornberg_weights, make_time_grid
 
 TOL_D1_MINJERK = 1e-5  # rel. error of d1 on a quintic (4th-order FD, T=100)
 TOL_D2_MINJERK = 1e-3  # rel. error of d2 (3rd order at the ends)

@@ -108,8 +108,8 @@ _HLO = """HloModule jit_step
 
 FileNames
 1 "/x/site-packages/jax/_src/lax.py"
-2 "/repo/evojax_motion/compile_optim.py"
-3 "/repo/evojax_motion/evolution.py"
+2 "/repo/evojax_motion/compiler/optimisation.py"
+3 "/repo/evojax_motion/evolution/step.py"
 
 FunctionNames
 1 "add"
@@ -158,9 +158,9 @@ ENTRY %main (x: f32[4]) -> f32[4] {
 
 def test_kernels_are_traced_to_the_project_function_most_of_their_code_comes_from():
     assert kernel_sources(_HLO) == {
-        "loop_a_1": "compile_optim:objective",
-        "fusion_2": "compile_optim:solve",
-        "b": "compile_optim:solve",
+        "loop_a_1": "optimisation:objective",
+        "fusion_2": "optimisation:solve",
+        "b": "optimisation:solve",
         "c": NO_SOURCE,
     }
 
@@ -173,8 +173,8 @@ def test_kernel_time_by_source():
     keys = ("source", "kernels_per_generation", "us_per_generation")
     rows = [tuple(r[k] for k in keys) for r in s["by_source"]]
     assert rows == [
-        ("compile_optim:objective", 1.0, 10.0),
-        ("compile_optim:solve", 0.5, 2.0),
+        ("optimisation:objective", 1.0, 10.0),
+        ("optimisation:solve", 0.5, 2.0),
         (NO_SOURCE, 0.5, 1.0),
         (NOT_IN_HLO, 0.5, 0.5),
     ]
@@ -202,8 +202,8 @@ def test_programs_traced_apart_are_summed_and_their_sources_merged():
     rows = {
         r["source"]: (r["kernels_per_generation"], r["us_per_generation"]) for r in m["by_source"]
     }
-    assert rows == {"compile_optim:objective": (1, 10.0), "compile_optim:other": (1, 6.0),
-                    "compile_optim:solve": (1, 4.0), NOT_IN_HLO: (1, 2.0)}  # fmt: skip
+    assert rows == {"optimisation:objective": (1, 10.0), "optimisation:other": (1, 6.0),
+                    "optimisation:solve": (1, 4.0), NOT_IN_HLO: (1, 2.0)}  # fmt: skip
     assert m["stages"] == stages
     assert [(k["name"], k["mean_us"]) for k in m["top_kernels"]] == [
         ("prepare:loop_a_1", 10.0), ("finish:loop_a_1", 6.0), ("prepare:b", 4.0),

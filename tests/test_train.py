@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evojax_motion import checkpoint as ck
 from evojax_motion.errors import UserError
-from evojax_motion.train import check_run_dir
+from evojax_motion.run import checkpoint as ck
+from evojax_motion.run.training import check_run_dir
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "tiny.yaml"
@@ -169,11 +169,12 @@ def test_check_run_dir_refusals(tmp_path):
 
 def test_compile_wait_counts_the_early_compile_still_running():
     """``compile_seconds`` of a run's summary counts the wait for the step compiled in the
-    background (`train.wait_for_step`): a compile that ends 0.3 s after the demonstrations and
+    background (`run.training.wait_for_step`): a compile that ends 0.3 s after the demonstrations
+    and
     conditions is 0.3 s not hidden (earlier summaries read 0.0 s there)."""
     import time
 
-    from evojax_motion.train import wait_for_step
+    from evojax_motion.run.training import wait_for_step
 
     class Early:
         def step(self):
@@ -194,8 +195,8 @@ DB_KEYS = ("q", "duration", "condition", "cost", "origin", "valid", "generation"
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """One uninterrupted run of configs/tiny.yaml: ``(out_dir, summary, cfg)``."""
-    from evojax_motion.config import load_config
-    from evojax_motion.train import run_training
+    from evojax_motion.run.training import run_training
+    from evojax_motion.settings import load_config
 
     cfg = load_config(TINY)
     out = tmp_path_factory.mktemp("tiny") / "run"
@@ -216,12 +217,13 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     many conditions), every run would compile it twice, silently."""
     import jax
 
-    from evojax_motion import compile_cache, evolution
-    from evojax_motion.compile_cache import signature
-    from evojax_motion.config import config_from_dict, config_to_dict, load_config
-    from evojax_motion.database import humans_only, save_database
-    from evojax_motion.train import expected_inputs, initial_state
-    from evojax_motion.workflow import make_robot_dynamics
+    from evojax_motion.evolution import step as evolution
+    from evojax_motion.motion.database import humans_only, save_database
+    from evojax_motion.run import cache as compile_cache
+    from evojax_motion.run.cache import signature
+    from evojax_motion.run.training import expected_inputs, initial_state
+    from evojax_motion.run.workflow import make_robot_dynamics
+    from evojax_motion.settings import config_from_dict, config_to_dict, load_config
 
     assert compile_cache.traced_cache_dir() is not None  # conftest's test-run cache
     cfg = load_config(TINY)
@@ -258,7 +260,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
 
     # a new run compiles the setup's programs from the expected sizes, in the background:
     # they must be the very programs `initial_state` then calls (no second signature)
-    from evojax_motion.train import expected_sizes, setup_programs
+    from evojax_motion.run.training import expected_sizes, setup_programs
 
     setup = setup_programs(cfg, robot, dyn, expected_sizes(cfg, robot))
     setup.precompile()
@@ -280,19 +282,20 @@ STAGED_COST_RTOL = 1e-5
 
 @pytest.mark.parametrize("method", ["adam", "bfgs"])  # bfgs: its Gauss-Newton model in prepare
 def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch, method):
-    """`train.compile_generation_step` on one device: its two stages compiled side by side give
+    """`run.training.compile_generation_step` on one device: its two stages compiled side by side
+    give
     the one-program step's generations (database and statistics, 2 generations), its cost
     analysis is the two programs' together, and a second compile traces neither stage again
     (the traced programs are kept)."""
     import jax
 
-    from evojax_motion import compile_cache
-    from evojax_motion.config import load_config
-    from evojax_motion.database import count_human
-    from evojax_motion.evolution import make_generation_step
-    from evojax_motion.timegrid import make_time_grid
-    from evojax_motion.train import StagedStep, compile_generation_step, initial_state
-    from evojax_motion.workflow import make_robot_dynamics
+    from evojax_motion.evolution.step import make_generation_step
+    from evojax_motion.motion.database import count_human
+    from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.run import cache as compile_cache
+    from evojax_motion.run.training import StagedStep, compile_generation_step, initial_state
+    from evojax_motion.run.workflow import make_robot_dynamics
+    from evojax_motion.settings import load_config
 
     assert compile_cache.traced_cache_dir() is not None  # conftest's test-run cache
     cfg = load_config(TINY, [f"compiler.method={method}"])
@@ -328,7 +331,7 @@ def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypa
 
 
 def _db(path):
-    from evojax_motion.database import load_database
+    from evojax_motion.motion.database import load_database
 
     return load_database(path)[0]
 
@@ -339,7 +342,7 @@ def _metrics(out: Path) -> list[dict]:
 
 @pytest.mark.slow
 def test_tiny_run_outputs_and_invariants(tiny_run):
-    from evojax_motion.train import METRIC_FIELDS
+    from evojax_motion.run.training import METRIC_FIELDS
 
     out, summary, cfg = tiny_run
     g_total = cfg.evolution.generations
@@ -402,8 +405,8 @@ def test_stored_costs_match_mujoco(tiny_run):
     trajectories (timegrid derivatives in float64, trapezoid weights)."""
     import mujoco
 
-    from evojax_motion.robot import load_robot, mj_inverse_torques
-    from evojax_motion.timegrid import make_time_grid
+    from evojax_motion.model.robot import load_robot, mj_inverse_torques
+    from evojax_motion.motion.timegrid import make_time_grid
 
     out, _, cfg = tiny_run
     db = _db(out / "db_final.npz")
@@ -457,11 +460,12 @@ for name in ("replace", "rename", "fsync", "mkdir", "makedirs", "unlink", "remov
     setattr(os, name, hook(getattr(os, name)))
 shutil.rmtree = hook(shutil.rmtree)
 
-from evojax_motion.cli import main
+from evojax_motion.cli.entry import main
 
 # what a run imports (the JAX backend starts in each forked run: nothing runs here)
 import jax.numpy, orbax.checkpoint, yaml  # noqa: E401
-import evojax_motion.checkpoint, evojax_motion.train, evojax_motion.workflow  # noqa: E401
+import evojax_motion.run.checkpoint  # noqa: E401
+import evojax_motion.run.training, evojax_motion.run.workflow  # noqa: E401
 
 for line in sys.stdin:
     index, when, count_file, log, *argv = json.loads(line)
@@ -492,7 +496,7 @@ def _check_visible_files(out: Path) -> None:
     """What a killed run leaves is complete: every file it shows reads back (atomic writes)."""
     import yaml
 
-    from evojax_motion.database import load_database
+    from evojax_motion.motion.database import load_database
 
     if (out / "config.yaml").exists():
         assert isinstance(yaml.safe_load((out / "config.yaml").read_text()), dict)
@@ -583,7 +587,7 @@ def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(tiny_run, kil
     (or restarted, when the kill came before the run folder held a config): every resume
     completes without meeting a damaged checkpoint, and its final database and metrics equal
     the uninterrupted run's, bit for bit."""
-    from evojax_motion.cli import main
+    from evojax_motion.cli.entry import main
 
     server, n_ops, _ = kill_driver
     assert n_ops > 4 * N_KILLS, n_ops
@@ -608,12 +612,12 @@ def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(tiny_run, kil
 @pytest.mark.slow
 def test_damaged_latest_checkpoint_falls_back(tiny_run, tmp_path, capsys, monkeypatch):
     """A resume skips a damaged step with one warning line, and without the tracebacks of
-    callbacks on orbax's closed event loop (`checkpoint._ignore_closed_loop_callbacks`)."""
+    callbacks on orbax's closed event loop (`run.checkpoint._ignore_closed_loop_callbacks`)."""
     import shutil
     import time
 
-    from evojax_motion.config import load_config
-    from evojax_motion.train import run_training
+    from evojax_motion.run.training import run_training
+    from evojax_motion.settings import load_config
 
     ref_out, _, cfg = tiny_run
     out = tmp_path / "run"
@@ -642,8 +646,8 @@ def test_sparse_checkpoints_resume_to_the_same_run(tiny_run, tmp_path):
     """``train.checkpoint_every: 3`` over 4 generations: checkpoints after generations 0, 3 and
     4 only, the same database and metrics as checkpointing every generation; a run stopped after
     generation 4 but before its checkpoint resumes from 3, recomputes 4 and ends the same."""
-    from evojax_motion.config import load_config
-    from evojax_motion.train import CHECKPOINT_DIR, run_training
+    from evojax_motion.run.training import CHECKPOINT_DIR, run_training
+    from evojax_motion.settings import load_config
 
     ref_out, _, _ = tiny_run
     sparse = ["train.checkpoint_every=3", "train.max_to_keep=5", "train.plots=false"]
@@ -674,8 +678,8 @@ def test_an_error_queueing_the_next_generation_comes_after_the_files_of_the_last
     """`train` queues generation g + 1 before writing generation g's files; where queueing it
     fails, generation g's metrics and checkpoint are written first, then the error is raised,
     and a resume continues from g to the uninterrupted run's results."""
-    from evojax_motion import train
-    from evojax_motion.config import load_config
+    from evojax_motion.run import training as train
+    from evojax_motion.settings import load_config
 
     real = train.compile_generation_step
 
@@ -705,8 +709,8 @@ def test_an_error_queueing_the_next_generation_comes_after_the_files_of_the_last
 def _every_checkpoint_restores(out: Path, cfg) -> list[int]:
     """The run's checkpoint steps, after checking that each restores as the run's state, with
     its generation, and passes its checksum."""
-    from evojax_motion.database import load_database
-    from evojax_motion.train import CHECKPOINT_DIR, checkpoint_template
+    from evojax_motion.motion.database import load_database
+    from evojax_motion.run.training import CHECKPOINT_DIR, checkpoint_template
 
     template = checkpoint_template(cfg, load_database(out / "db_initial.npz")[0])
     with ck.open_manager(out / CHECKPOINT_DIR, cfg.train.max_to_keep) as manager:
@@ -719,7 +723,7 @@ def _every_checkpoint_restores(out: Path, cfg) -> list[int]:
 
 
 def _lock_holder(out: Path) -> int | None:
-    from evojax_motion.run_lock import LOCK_FILE
+    from evojax_motion.run.lock import LOCK_FILE
 
     try:
         return int(json.loads((out / LOCK_FILE).read_text())["pid"])
@@ -733,7 +737,7 @@ def test_a_second_train_of_a_run_folder_in_use_is_refused(tiny_run, tmp_path):
     time being, so that it is surely still running), a second one, and a `train --resume`,
     exit with status 2 and one line naming the first's process; the first then finishes with
     every checkpoint intact and the results of a run alone."""
-    from evojax_motion.run_lock import LOCK_FILE
+    from evojax_motion.run.lock import LOCK_FILE
 
     ref_out, _, cfg = tiny_run
     out = tmp_path / "run"
@@ -787,7 +791,7 @@ def test_a_full_disk_stops_a_run_with_one_line_and_it_resumes(
     the uninterrupted run's results."""
     import orbax.checkpoint as ocp
 
-    from evojax_motion.cli import main
+    from evojax_motion.cli.entry import main
 
     out = tmp_path / "run"
     args = [*KILL_ARGS, "--out", str(out)]
@@ -831,8 +835,8 @@ def test_a_run_folder_of_an_older_version_resumes_with_new_keys_at_their_default
     another config."""
     import yaml
 
-    from evojax_motion.config import config_to_dict, load_config
-    from evojax_motion.train import TrainSettings
+    from evojax_motion.run.training import TrainSettings
+    from evojax_motion.settings import config_to_dict, load_config
 
     default = TrainSettings().checkpoint_every
     mine = config_to_dict(load_config(TINY, [f"train.checkpoint_every={default}"]))
@@ -867,7 +871,7 @@ def _snapshot(folder: Path) -> dict:
     ],
 )
 def test_cli_refuses_bad_input_and_writes_nothing(tmp_path, capsys, args, message):
-    from evojax_motion.cli import main
+    from evojax_motion.cli.entry import main
 
     out = tmp_path / "run"
     status = main(["train", str(TINY), "--out", str(out), "--quiet", *args])
@@ -879,7 +883,7 @@ def test_cli_refuses_bad_input_and_writes_nothing(tmp_path, capsys, args, messag
 
 @pytest.mark.slow
 def test_cli_refuses_another_configs_run(tiny_run, capsys):
-    from evojax_motion.cli import main
+    from evojax_motion.cli.entry import main
 
     out = tiny_run[0]
     before = _snapshot(out)
@@ -904,7 +908,7 @@ def test_cli_refuses_another_configs_run(tiny_run, capsys):
     ],
 )
 def test_train_settings_reject_bad_values(field, value):
-    from evojax_motion.train import TrainSettings
+    from evojax_motion.run.training import TrainSettings
 
     with pytest.raises(ValueError, match=rf"^{field}: expected"):
         TrainSettings(**{field: value})

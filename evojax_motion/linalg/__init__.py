@@ -1,4 +1,3 @@
-"""Small-matrix kernels written for batches under ``vmap`` on accelerators: Jacobi eigen- and
-singular value decompositions, an unrolled Cholesky solve, a closed-form 2 x 2 eigensolver and
-fusable row reductions. One copy of each, shared by the basis, the compilers and the online query.
+"""Small-matrix kernels written for batched use under jit: Jacobi eigh / SVD, Cholesky, 2x2 eigh,
+reductions, and the matmul precision every entry point traces with (`precision`).
 """

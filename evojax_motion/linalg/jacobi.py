@@ -1,6 +1,7 @@
 """Small symmetric eigenproblems and SVDs as elementwise code: parallel cyclic Jacobi.
 
-Used by the PCA basis (`basis.pca_basis`), the boundary-condition solves (`compile_interp`) and
+Used by the PCA basis (`compiler.basis.pca_basis`), the boundary-condition solves
+(`compile_interp`) and
 the Newton method's trust-region models (`solvers.steps`). On GPUs a batch of small SVD / eigen
 problems is a cuSOLVER call per matrix, far slower than its arithmetic; these kernels are
 straight-line elementwise code that vmap batches and XLA fuses. On CPU LAPACK is faster (and these
@@ -173,7 +174,7 @@ def jacobi_backend() -> bool:
     On GPUs a batch of small SVD/eigen problems is a cuSOLVER call per matrix or a batched Jacobi
     call, both far slower than the arithmetic (an online query has ~70 such problems per target);
     on CPU, LAPACK is fast and `jacobi_eigh`'s long elementwise program compiles slowly (the same
-    split as ``dynamics_rnea.default_form``). Read at trace time.
+    split as ``model.rnea.default_form``). Read at trace time.
     """
     return jax.default_backend() != "cpu"
 
@@ -251,7 +252,7 @@ def small_right_svd(
     ``jacobi`` (``n <= JACOBI_MAX_N``) the two Gram passes of `gram_two_pass` on the columns'
     ``n x n`` Gram with `jacobi_eigh`: as accurate, with no reduction over the m rows per Jacobi
     round, but more rounds. For the optimiser's BC solve (100 x 5 matrices per condition and
-    joint, `compile_interp.GRAM_SVD_MIN_MATRICES`).
+    joint, `compiler.interpolation.GRAM_SVD_MIN_MATRICES`).
     """
     m, n = a.shape
     if not (two_pass_gram and jacobi and m >= n and n <= JACOBI_MAX_N):

@@ -1,0 +1,1 @@
+"""The `evojax-motion` command: the entry point (`entry`) and its subcommands."""

@@ -1,0 +1,113 @@
+"""Forward kinematics and inverse dynamics of a robot, with a choice of backend (DESIGN 1).
+
+The torque objective of the optimisation compiler (Park et al. 2008, eq. 5) needs, at every
+sample of a primitive, ``tau = M(q) qdd + C(q, qd) qd + g(q)``; the conditions and the IK need the
+end-effector site pose. `make_dynamics` returns both as pure, un-jitted single-sample functions;
+callers vmap over samples and conditions and jit at the top.
+
+Backends (both return C MuJoCo's ``mj_inverse`` ``qfrc_inverse`` for the controlled dofs):
+  - ``"rnea"``: recursive Newton-Euler compiled from the ``mjModel`` into a straight-line JAX
+    graph (`dynamics_rnea`); hinge/slide joints, chains and trees. The fast path: its layout is
+    chosen for the default JAX backend (``model.rnea.default_form``), since XLA's CPU and GPU
+    compilers favour different ones.
+  - ``"mjx"``: ``mujoco.mjx.inverse`` / ``mjx.kinematics`` (`dynamics_mjx`); the reference.
+Joints the robot does not control are held at ``qpos0``, at rest. With armature, damping or
+stiffness in the model both backends add ``armature*qdd + damping*qd + stiffness*(q - springref)``
+as ``mj_inverse`` does; the shipped models have none, and disable constraints and contacts, so
+the torque is the pure rigid-body one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from evojax_motion.errors import UserError
+
+if TYPE_CHECKING:  # annotations only: robot.py does not need to import first
+    from evojax_motion.model.robot import Robot
+
+BACKENDS = ("rnea", "mjx")
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: hashed by identity, usable as a jit static arg
+class Dynamics:
+    """A robot's kinematics and inverse dynamics as pure single-sample functions.
+
+    inverse: ``(q (J,), qd (J,), qdd (J,)) -> tau (J,)`` [N m or N], controlled joints only;
+    each input may also be a sequence of J scalars (`compiler.optimisation.node_states`).
+    site_pose: ``q (J,) -> (pos (3,), rot (3, 3))`` of ``robot.site_name``, world frame.
+    body_positions: ``q (J,) -> (nbody, 3)`` world body origins (MuJoCo ``xpos``), for key points.
+    form: the RNEA's layout (`model.rnea.make_rnea`), None for MJX. The ``"scalar"`` one
+    reads sequences of scalars as they are; the others stack them first.
+    torques: the ``"scalar"`` layout's `inverse` with its torques a tuple of J scalars (not
+    stacked; `inverse` stacks them); None for the other layouts and MJX.
+    """
+
+    robot: Robot
+    backend: str
+    dtype: Any
+    inverse: Callable
+    site_pose: Callable
+    body_positions: Callable
+    form: str | None = None
+    torques: Callable | None = None
+
+
+def make_dynamics(
+    robot: Robot, backend: str = "rnea", dtype: Any = jnp.float32, form: str | None = None
+) -> Dynamics:
+    """Build the `Dynamics` of `robot` with `backend` in `BACKENDS`, computing in `dtype`.
+
+    ``form``: RNEA only, its layout (`model.rnea.make_rnea`; None: the default JAX backend's).
+
+    float64 needs jax x64 enabled both here and where the functions are traced
+    (``jax.enable_x64(True)`` context or the ``jax_enable_x64`` flag).
+    """
+    if backend not in BACKENDS:
+        raise UserError(f"dynamics: expected one of {BACKENDS}, got {backend!r}")
+    dtype = np.dtype(dtype)
+    if dtype not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise UserError(f"dtype: expected float32 or float64, got {dtype}")
+    if jax.dtypes.canonicalize_dtype(dtype) != dtype:
+        raise UserError("dtype: float64 needs jax x64 enabled (jax.enable_x64(True))")
+    if backend == "rnea":
+        from evojax_motion.model.rnea import default_form, make_rnea
+
+        form = default_form() if form is None else form
+        fns = make_rnea(robot, dtype, form)
+    else:  # lazily: importing mujoco.mjx is slow and noisy
+        from evojax_motion.model.mjx import make_mjx
+
+        fns = make_mjx(robot, dtype)
+    return Dynamics(
+        robot=robot,
+        backend=backend,
+        dtype=dtype,
+        inverse=fns.inverse,
+        site_pose=fns.site_pose,
+        body_positions=fns.body_positions,
+        form=form if backend == "rnea" else None,
+        torques=fns.torques,
+    )
+
+
+def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
+    """``(dynamics, jit compiler_options)`` for a jitted program that evaluates ``dyn`` many times.
+
+    On the CPU backend with RNEA: the scalar layout, compiled with XLA's CPU fusion emitters off
+    for that program only (`model.rnea.UNFUSED_CPU_OPTIONS`), where it runs about twice as
+    fast as the default vector layout (`BENCHMARKS.md`, dynamics throughput). Every function of
+    the returned ``dyn`` must be traced only into programs compiled with those options: under the
+    default CPU options the scalar layout's gradients are far slower. Elsewhere ``(dyn, None)``.
+    """
+    if jax.default_backend() == "cpu" and dyn.backend == "rnea":
+        from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS
+
+        return make_dynamics(dyn.robot, "rnea", dyn.dtype, "scalar"), dict(UNFUSED_CPU_OPTIONS)
+    return dyn, None

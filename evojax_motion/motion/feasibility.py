@@ -1,0 +1,110 @@
+"""Which rows of a primitive database a robot can execute: joint, velocity and torque limits.
+
+The evolution rejects offspring over any of them (`evolution.step.generation_stages`); human rows
+(demonstrations, imported motion) are data and stay in the database whatever they need, but a
+run reports how many are over a limit (`count_over_limits`, `over_limits_line`). A row is over a
+limit where some sample leaves ``[lower, upper]`` (+`compiler.optimisation.LIMIT_TOL`), or its peak
+``|qd|`` (``|tau|``, inverse dynamics on the time grid, as eq. 5's torques) over the T samples
+exceeds `model.robot.Robot.velocity_limit` (``torque_limit``). Infinite limits are never exceeded.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from evojax_motion.compiler.optimisation import LIMIT_TOL
+from evojax_motion.model.dynamics import Dynamics
+from evojax_motion.motion.database import Database
+from evojax_motion.motion.timegrid import derivatives, make_time_grid
+
+# Rows per call of the torque program (one compilation for any database size).
+CHUNK_ROWS = 256
+
+
+class OverLimits(NamedTuple):
+    """Counts among the valid rows: ``rows`` checked; rows over a ``joint`` range, a
+    ``velocity`` or a ``torque`` limit (a row may count in several); ``any``: over at least
+    one."""
+
+    rows: int
+    joint: int
+    velocity: int
+    torque: int
+    any: int
+
+
+def _peaks(dyn: Dynamics, q, duration):
+    """Peak ``|qd|`` and ``|tau|`` per row: ``q (n, T, J)``, ``duration (n,)`` -> ``(n, J)`` x 2."""
+    grid = make_time_grid(q.shape[1], q.dtype)
+
+    def one(q1, d):
+        qd, qdd = derivatives(grid, q1, d)
+        tau = jax.vmap(dyn.inverse)(q1, qd, qdd)
+        return jnp.max(jnp.abs(qd), axis=0), jnp.max(jnp.abs(tau), axis=0)
+
+    return jax.vmap(one)(q, duration)
+
+
+_peaks_jit = jax.jit(_peaks, static_argnums=0)
+
+
+def row_peaks(db: Database, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
+    """``(peak |qd| [rad/s], peak |tau| [N m])``, each ``(N, J)`` float64 for every row of
+    ``db`` (invalid rows too), computed in chunks of `CHUNK_ROWS` rows."""
+    q = np.asarray(db.q, np.float32)
+    dur = np.asarray(db.duration, np.float32)
+    n = q.shape[0]
+    out_qd, out_tau = [], []
+    for s in range(0, n, CHUNK_ROWS):
+        qc, dc = q[s : s + CHUNK_ROWS], dur[s : s + CHUNK_ROWS]
+        pad = CHUNK_ROWS - qc.shape[0] if n > CHUNK_ROWS else 0
+        if pad:  # resting rows: the last row repeated, dropped below
+            qc = np.concatenate([qc, np.repeat(qc[-1:], pad, axis=0)])
+            dc = np.concatenate([dc, np.repeat(dc[-1:], pad, axis=0)])
+        pqd, ptau = _peaks_jit(dyn, qc, dc)
+        keep = qc.shape[0] - pad
+        out_qd.append(np.asarray(pqd, np.float64)[:keep])
+        out_tau.append(np.asarray(ptau, np.float64)[:keep])
+    if not out_qd:
+        j = q.shape[-1]
+        return np.zeros((0, j)), np.zeros((0, j))
+    return np.concatenate(out_qd), np.concatenate(out_tau)
+
+
+def count_over_limits(db: Database, robot, dyn: Dynamics, rows=None) -> OverLimits:
+    """How many valid rows of ``db`` (or of the boolean mask ``rows (N,)`` among them, e.g.
+    `motion.database.human_mask`) are over a joint, velocity or torque limit of ``robot``
+    (`model.robot.Robot`), with torques from ``dyn``."""
+    sel = np.asarray(db.valid, bool)
+    if rows is not None:
+        sel = sel & np.asarray(rows, bool)
+    sub = Database(*(np.asarray(a)[sel] for a in db))
+    q = np.asarray(sub.q, np.float64)
+    lower, upper = np.asarray(robot.lower), np.asarray(robot.upper)
+    joint = np.any((q < lower - LIMIT_TOL) | (q > upper + LIMIT_TOL), axis=(1, 2))
+    qd_max, tau_max = np.asarray(robot.velocity_limit), np.asarray(robot.torque_limit)
+    if q.shape[0] and (np.isfinite(qd_max).any() or np.isfinite(tau_max).any()):
+        pqd, ptau = row_peaks(sub, dyn)
+    else:
+        pqd = ptau = np.zeros_like(q[:, 0])
+    velocity = np.any(~(pqd <= qd_max), axis=1)  # NaN counts as over
+    torque = np.any(~(ptau <= tau_max), axis=1)
+    return OverLimits(
+        rows=int(q.shape[0]),
+        joint=int(joint.sum()),
+        velocity=int(velocity.sum()),
+        torque=int(torque.sum()),
+        any=int((joint | velocity | torque).sum()),
+    )
+
+
+def over_limits_line(counts: OverLimits, what: str = "human rows") -> str:
+    """One line for a log: ``what``, and how many are over each limit."""
+    return (
+        f"{what}: {counts.any} of {counts.rows} over a limit of the robot (joint range "
+        f"{counts.joint}, velocity {counts.velocity}, torque {counts.torque}); kept as data"
+    )
