@@ -9,13 +9,13 @@ continuous joint), velocity and torque limits, a rest posture, and the addresses
 controlled joints into ``qpos``/``qvel``. Joints of the model that are not controlled are held at
 ``qpos0`` by the dynamics backends.
 
-A model file is loaded the way MuJoCo loads it (`read_mjcf`: ``<include>``, meshes and textures
-beside the file). The `Robot` keeps one self-contained MJCF text (``Robot.mjcf``), which a
-database or run folder embeds and `robot_from_mjcf_text` compiles again anywhere: a file without
-includes or asset files verbatim, any other one expanded by ``MjSpec.to_xml`` with its meshes
-written into the text (docs/robot_models.md). An end effector given as a body, or with an
+A model file is loaded the way MuJoCo loads it (`model.mjcf.read_mjcf`: ``<include>``, meshes
+and textures beside the file). The `Robot` keeps one self-contained MJCF text (``Robot.mjcf``),
+which a database or run folder embeds and `robot_from_mjcf_text` compiles again anywhere: a file
+without includes or asset files verbatim, any other one expanded by ``MjSpec.to_xml`` with its
+meshes written into the text (docs/robot_models.md). An end effector given as a body, or with an
 offset, becomes a site of that text (`END_EFFECTOR_SITE`); velocity limits given in a config
-become its ``velocity_limit`` numeric.
+become its ``velocity_limit`` numeric. The velocity and torque limits are read by `model.limits`.
 
 Shipped models (`SHIPPED_ROBOTS`, files in ``evojax_motion/models``; docs/robot_models.md):
   - ``mahru_arm``: waist yaw + right arm with de Leva (1996) adult male segment inertias;
@@ -24,12 +24,9 @@ Shipped models (`SHIPPED_ROBOTS`, files in ``evojax_motion/models``; docs/robot_
 
 from __future__ import annotations
 
-import copy
 import functools
 import math
-import numbers
 import os
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -40,13 +37,14 @@ import mujoco
 import numpy as np
 
 from evojax_motion.errors import UserError
+from evojax_motion.model.limits import torque_limits, velocity_limits, with_velocity_limits
+from evojax_motion.model.mjcf import compile_mjcf, format_numbers, object_names, read_mjcf
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 
 _HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
 _SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
 _JOINT_TYPE_NAMES = {0: "free", 1: "ball", 2: "slide", 3: "hinge"}
-_ACTUATED_JOINT = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
 # A keyframe written with 6 decimals may sit this far outside a limit written the same way.
 _REST_TOL = 1e-6
 REST_MARGIN = 0.05  # the rest posture keeps this fraction of a joint's range from either limit
@@ -54,7 +52,6 @@ REST_KEYFRAMES = ("rest", "home")  # keyframes taken as the rest posture, in thi
 CONTINUOUS_HALF_SPAN = math.pi  # [rad] postures of a continuous hinge are drawn from rest +- this
 UNLIMITED_SLIDE_HALF_SPAN = 1.0  # [m] and those of a slide joint without a range from rest +- this
 END_EFFECTOR_SITE = "end_effector"  # the site added for a body end effector or an offset
-VELOCITY_NUMERIC = "velocity_limit"  # <custom><numeric> holding one velocity limit per joint
 
 
 class ShippedRobot(NamedTuple):
@@ -85,38 +82,6 @@ SHIPPED_ROBOTS: dict[str, ShippedRobot] = {
         "tool",
     ),
 }
-
-
-def _names(m: mujoco.MjModel, obj: mujoco.mjtObj, count: int) -> list[str]:
-    return [mujoco.mj_id2name(m, obj, i) or f"#{i}" for i in range(count)]
-
-
-def _first_lines(err: Exception) -> str:
-    """MuJoCo's message on one line (it spreads what and where over several)."""
-    lines = [ln.strip() for ln in str(err).strip().splitlines() if ln.strip()]
-    return "; ".join(lines[:2]) if lines else type(err).__name__
-
-
-@functools.lru_cache(maxsize=8)
-def _compiled(xml: str) -> mujoco.MjModel:
-    """The model of ``xml``, compiled once: loading a robot reads its model up to three times
-    (defaults, the robot, a rebuilt copy) and a model with meshes takes ~0.3 s to compile."""
-    return mujoco.MjModel.from_xml_string(xml)
-
-
-def _compile(xml: str, where: str) -> mujoco.MjModel:
-    """Compile MJCF text, with constraints and contacts switched off (see `Robot.mj_model`).
-
-    A new ``MjModel`` each call (a copy of the cached one): callers may change theirs.
-    """
-    try:
-        m = copy.copy(_compiled(xml))
-    except Exception as err:  # mujoco raises ValueError; its first lines say what is wrong
-        raise UserError(f"{where}: MJCF does not compile: {_first_lines(err)}") from None
-    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT) | int(
-        mujoco.mjtDisableBit.mjDSBL_CONTACT
-    )
-    return m
 
 
 def _joint_tuple(joints: Sequence[str], where: str) -> tuple[str, ...]:
@@ -189,7 +154,7 @@ class Robot:
         joint limits are enforced by the compilers, not by constraint forces, so both dynamics
         backends must see a model without constraints whatever the MJCF's <option> says.
         """
-        return _compile(self.mjcf, self._where)
+        return compile_mjcf(self.mjcf, self._where)
 
     @functools.cached_property
     def joint_ids(self) -> np.ndarray:
@@ -197,7 +162,7 @@ class Robot:
         m = self.mj_model
         if not self.joint_names:
             raise UserError(f"{self._where}: joints: expected at least one controlled joint")
-        available = _names(m, mujoco.mjtObj.mjOBJ_JOINT, m.njnt)
+        available = object_names(m, mujoco.mjtObj.mjOBJ_JOINT, m.njnt)
         ids: list[int] = []
         for k, name in enumerate(self.joint_names):
             if name in self.joint_names[:k]:
@@ -285,53 +250,14 @@ class Robot:
         depend on which joints a user chooses to control; ``inf`` is no limit. A config's
         ``robot.velocity_limits`` is written into this numeric when the robot is loaded.
         """
-        data = _velocity_numeric(self.mj_model, self._where)
-        if data is None:
-            return _read_only(np.full(self.n_joints, np.inf))
-        limit = data[self.joint_ids]
-        bad = [n for n, v in zip(self.joint_names, limit) if not v > 0]
-        if bad:
-            raise UserError(
-                f"{self._where}: custom numeric 'velocity_limit': expected values > 0, got "
-                f"{limit.tolist()} for joints {bad}"
-            )
-        return _read_only(limit)
+        return _read_only(
+            velocity_limits(self.mj_model, self.joint_names, self.joint_ids, self._where)
+        )
 
     @functools.cached_property
     def _torque_limits(self) -> tuple[np.ndarray, tuple[str, ...]]:
-        m = self.mj_model
-        limit = np.full(self.n_joints, np.inf)
-        sources = []
-        for k, (name, j) in enumerate(zip(self.joint_names, self.joint_ids)):
-            if m.jnt_actfrclimited[j]:
-                limit[k] = _symmetric_bound(
-                    m.jnt_actfrcrange[j], f"{self._where}: joint {name!r}: actuatorfrcrange"
-                )
-                sources.append("joint actuatorfrcrange")
-                continue
-            acts = [
-                a
-                for a in range(m.nu)
-                if int(m.actuator_trntype[a]) in _ACTUATED_JOINT and m.actuator_trnid[a, 0] == j
-            ]
-            act_names = _names(m, mujoco.mjtObj.mjOBJ_ACTUATOR, m.nu)
-            unlimited = [act_names[a] for a in acts if not m.actuator_forcelimited[a]]
-            if not acts:
-                sources.append("none")
-            elif unlimited:
-                sources.append(f"none (actuator {unlimited[0]!r} has no forcerange)")
-            else:
-                limit[k] = sum(
-                    _symmetric_bound(
-                        m.actuator_forcerange[a],
-                        f"{self._where}: actuator {act_names[a]!r}: forcerange",
-                    )
-                    * abs(float(m.actuator_gear[a, 0]))
-                    for a in acts
-                )
-                quoted = ", ".join(repr(act_names[a]) for a in acts)
-                sources.append(f"actuator {quoted} forcerange x |gear|")
-        return _read_only(limit), tuple(sources)
+        limit, sources = torque_limits(self.mj_model, self.joint_names, self.joint_ids, self._where)
+        return _read_only(limit), sources
 
     @property
     def torque_limit(self) -> np.ndarray:
@@ -396,18 +322,10 @@ class Robot:
         m = self.mj_model
         s = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, self.site_name)
         if s < 0:
-            sites = _names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite)
+            sites = object_names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite)
             have = f"the model's sites are {sites}" if sites else "the model has no sites"
             raise UserError(f"{self._where}: site: no site named {self.site_name!r}; {have}")
         return int(s)
-
-
-def _symmetric_bound(lo_hi, what: str) -> float:
-    """The magnitude a range ``[lo, hi]`` with ``lo < 0 < hi`` allows both ways."""
-    lo, hi = (float(x) for x in lo_hi)
-    if not lo < 0 < hi:
-        raise UserError(f"{what}: expected lower < 0 < upper, got [{lo:g}, {hi:g}]")
-    return min(-lo, hi)
 
 
 def _rest_keyframe(m: mujoco.MjModel) -> tuple[int, str]:
@@ -420,149 +338,6 @@ def _rest_keyframe(m: mujoco.MjModel) -> tuple[int, str]:
     if m.nkey:
         return 0, mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_KEY, 0) or "#0"
     return -1, ""
-
-
-def _velocity_numeric(m: mujoco.MjModel, where: str) -> np.ndarray | None:
-    """(njnt,) float64 values of the model's velocity-limit numeric, or None without one."""
-    k = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_NUMERIC, VELOCITY_NUMERIC)
-    if k < 0:
-        return None
-    adr, size = int(m.numeric_adr[k]), int(m.numeric_size[k])
-    if size != m.njnt:
-        raise UserError(
-            f"{where}: custom numeric 'velocity_limit': expected {m.njnt} values (one "
-            f"per joint of the model, in model order), got {size}"
-        )
-    return np.asarray(m.numeric_data[adr : adr + size], dtype=np.float64)
-
-
-# -- reading a model file -----------------------------------------------------------------------
-
-
-class ModelText(NamedTuple):
-    """What `read_mjcf` returns: self-contained MJCF text and the files it was made from."""
-
-    xml: str  # compiles from the string alone
-    files: tuple[str, ...]  # the model file first, then its includes and asset files
-
-
-def read_mjcf(path: str | os.PathLike) -> ModelText:
-    """Load an MJCF file as MuJoCo does (``<include>``, ``meshdir``, meshes beside the file) and
-    return self-contained text for it.
-
-    A file without includes or asset files is returned verbatim. Otherwise MuJoCo's own parse
-    (``MjSpec.from_file``) is written back with ``MjSpec.to_xml`` (includes expanded; numbers to
-    its 6 significant digits), each mesh file as the mesh's vertices and faces in the text. Texture
-    files are left out (warned on stderr: pictures show plain colours). Height-field and skin files
-    are refused (`UserError`). Dynamics never read meshes; they are kept for pictures.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: MJCF file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise UserError(f"{path}: cannot read the MJCF file: {err}") from None
-    try:
-        spec = mujoco.MjSpec.from_file(str(path))
-    except Exception as err:  # mujoco raises ValueError
-        raise UserError(f"{path}: MJCF does not compile: {_first_lines(err)}") from None
-    includes = _include_files(path)
-    assets = _asset_files(spec, path)
-    files = tuple(str(p) for p in (path, *includes, *(p for _, p in assets)))
-    if not includes and not assets:
-        return ModelText(text, files)
-    return ModelText(_self_contained_xml(spec, path), files)
-
-
-def _include_files(path: Path) -> list[Path]:
-    """The files ``<include>``d by ``path`` and by them, as MuJoCo finds them (relative to the
-    main file's folder, else to the including file's)."""
-    found: list[Path] = []
-
-    def visit(file: Path) -> None:
-        try:
-            root = ElementTree.parse(file).getroot()
-        except (OSError, ElementTree.ParseError):
-            return  # MuJoCo has read it already; this list is for the summary only
-        for element in root.iter("include"):
-            name = element.get("file", "")
-            for folder in (path.parent, file.parent):
-                candidate = folder / name
-                if name and candidate.is_file():
-                    if candidate not in found:
-                        found.append(candidate)
-                        visit(candidate)
-                    break
-
-    visit(path)
-    return found
-
-
-def _asset_files(spec: mujoco.MjSpec, path: Path) -> list[tuple[str, Path]]:
-    """``(kind, file)`` of every asset of ``spec`` that MuJoCo reads from a file."""
-    base = Path(spec.modelfiledir or path.parent)
-
-    def where(element, attr: str, name: str) -> Path:
-        folder = getattr(getattr(element, "compiler", None), attr, None)
-        folder = getattr(spec, attr) if folder is None else folder
-        return base / folder / name
-
-    out: list[tuple[str, Path]] = []
-    out += [("mesh", where(m, "meshdir", m.file)) for m in spec.meshes if m.file]
-    out += [("hfield", where(h, "meshdir", h.file)) for h in spec.hfields if h.file]
-    out += [("skin", where(s, "meshdir", s.file)) for s in spec.skins if s.file]
-    for tex in spec.textures:
-        names = [tex.file, *list(tex.cubefiles)]
-        out += [("texture", where(tex, "texturedir", n)) for n in names if n]
-    return out
-
-
-def _self_contained_xml(spec: mujoco.MjSpec, path: Path) -> str:
-    """``spec`` (read from ``path``) as MJCF text that needs no other file (see `read_mjcf`)."""
-    for kind, items in (("hfield", spec.hfields), ("skin", spec.skins)):
-        named = [h.name or h.file for h in items if h.file]
-        if named:
-            raise UserError(
-                f"{path}: {kind} {named[0]!r} is read from a file, which cannot be stored with "
-                f"the robot; expected meshes, primitive geoms and textures only"
-            )
-    try:
-        m = spec.compile()
-    except Exception as err:
-        raise UserError(f"{path}: MJCF does not compile: {_first_lines(err)}") from None
-    for i, mesh in enumerate(spec.meshes):
-        if not mesh.file:
-            continue
-        # MuJoCo moves a mesh to its centre of mass and principal axes (mesh_pos, mesh_quat) and
-        # scales it: the compiled vertices, moved back, are the file's, scaled.
-        adr, n = int(m.mesh_vertadr[i]), int(m.mesh_vertnum[i])
-        fadr, nf = int(m.mesh_faceadr[i]), int(m.mesh_facenum[i])
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, m.mesh_quat[i])
-        vert = m.mesh_vert[adr : adr + n].astype(np.float64) @ rot.reshape(3, 3).T + m.mesh_pos[i]
-        mesh.file = ""
-        mesh.content_type = ""
-        mesh.scale = [1.0, 1.0, 1.0]
-        mesh.refpos = [0.0, 0.0, 0.0]
-        mesh.refquat = [1.0, 0.0, 0.0, 0.0]
-        mesh.uservert = vert.ravel().tolist()
-        mesh.userface = m.mesh_face[fadr : fadr + nf].ravel().tolist()
-    dropped = [tex for tex in spec.textures if tex.file or any(tex.cubefiles)]
-    if dropped:
-        names = {tex.name or Path(tex.file).stem for tex in dropped}
-        for material in spec.materials:
-            material.textures = ["" if t in names else t for t in material.textures]
-        for tex in dropped:
-            spec.delete(tex)
-        print(
-            f"warning: {path}: texture files are not stored with the robot (pictures show plain "
-            f"colours): {sorted(names)}",
-            file=sys.stderr,
-        )
-    spec.meshdir = ""
-    spec.texturedir = ""
-    return spec.to_xml()
 
 
 # -- building a robot ----------------------------------------------------------------------------
@@ -582,10 +357,6 @@ def _path_joints(m: mujoco.MjModel, body: int) -> tuple[str, ...]:
     )
 
 
-def _numbers(values) -> str:
-    return " ".join(repr(float(v)) for v in values)
-
-
 def _offset(value, where: str) -> np.ndarray | None:
     if value is None:
         return None
@@ -602,7 +373,7 @@ def _offset(value, where: str) -> np.ndarray | None:
 
 def _add_site(xml: str, m: mujoco.MjModel, body: int, pos, quat, where: str) -> tuple[str, str]:
     """``xml`` with a new site on ``body`` at ``pos``/``quat`` (body frame); ``(xml, name)``."""
-    taken = set(_names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite))
+    taken = set(object_names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite))
     name, k = END_EFFECTOR_SITE, 1
     while name in taken:
         name, k = f"{END_EFFECTOR_SITE}_{k}", k + 1
@@ -618,7 +389,7 @@ def _add_site(xml: str, m: mujoco.MjModel, body: int, pos, quat, where: str) -> 
             "element of the file (made by <replicate> or <attach>?); add a site to it and name "
             "that site"
         )
-    attrs = {"name": name, "pos": _numbers(pos), "quat": _numbers(quat)}
+    attrs = {"name": name, "pos": format_numbers(pos), "quat": format_numbers(quat)}
     ElementTree.SubElement(parent, "site", attrs)
     return ElementTree.tostring(root, encoding="unicode"), name
 
@@ -629,7 +400,7 @@ def _end_effector_site(
     """``(xml, site name, body id)`` of the end effector ``target`` (a site or body name; None:
     the model's only site), with a site added where it is a body or has an offset."""
     offset = _offset(offset, where)
-    sites = _names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite)
+    sites = object_names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite)
     if target is None:
         if len(sites) != 1:
             have = f"the model's sites are {sites}" if sites else "the model has no sites"
@@ -653,53 +424,10 @@ def _end_effector_site(
         xml, name = _add_site(xml, m, b, pos, (1.0, 0.0, 0.0, 0.0), where)
         return xml, name, b
     have = f"the model's sites are {sites}" if sites else "the model has no sites"
-    bodies = _names(m, mujoco.mjtObj.mjOBJ_BODY, m.nbody)[1:]
+    bodies = object_names(m, mujoco.mjtObj.mjOBJ_BODY, m.nbody)[1:]
     raise UserError(
         f"{where}: end_effector: no site or body named {target!r}; {have}, its bodies {bodies}"
     )
-
-
-def _with_velocity_limits(
-    xml: str, m: mujoco.MjModel, joints: tuple[str, ...], limits, where: str
-) -> str:
-    """``xml`` with its velocity-limit numeric holding ``limits`` (a mapping joint -> rad/s or
-    m/s, or one value per controlled joint) over the model's own values."""
-    key = f"{where}: velocity_limits"
-    if isinstance(limits, Mapping):
-        given = dict(limits)
-        unknown = [n for n in given if n not in joints]
-        if unknown:
-            raise UserError(
-                f"{key}: {unknown[0]!r} is not a controlled joint; expected some of {list(joints)}"
-            )
-    elif isinstance(limits, (Sequence, np.ndarray)) and not isinstance(limits, str):
-        if len(limits) != len(joints):
-            raise UserError(
-                f"{key}: expected {len(joints)} values (one per controlled joint {list(joints)}) "
-                f"or a mapping joint: limit, got {len(limits)}"
-            )
-        given = dict(zip(joints, limits))
-    else:
-        raise UserError(
-            f"{key}: expected a list of numbers or a mapping joint: limit, got {limits!r}"
-        )
-    values = _velocity_numeric(m, where)
-    values = np.full(m.njnt, np.inf) if values is None else values.copy()
-    for name, value in given.items():
-        ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and float(value) > 0
-        if not ok:  # (NaN > 0 is false)
-            raise UserError(f"{key}: {name}: expected a number > 0 [rad/s or m/s], got {value!r}")
-        values[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)] = float(value)
-    root = ElementTree.fromstring(xml)
-    for custom in root.iter("custom"):
-        for numeric in list(custom):
-            if numeric.tag == "numeric" and numeric.get("name") == VELOCITY_NUMERIC:
-                custom.remove(numeric)
-    found = root.find("custom")
-    custom = ElementTree.SubElement(root, "custom") if found is None else found
-    attrs = {"name": VELOCITY_NUMERIC, "data": _numbers(values)}
-    ElementTree.SubElement(custom, "numeric", attrs)
-    return ElementTree.tostring(root, encoding="unicode")
 
 
 def robot_from_mjcf_text(
@@ -740,7 +468,7 @@ def robot_from_mjcf_text(
         and velocity_limits is None
     ):  # a stored robot: nothing to read from the model first
         return Robot(name, xml, _joint_tuple(joints, where), site, source, tuple(files))
-    model = _compile(xml, where)  # the defaults are read from the model
+    model = compile_mjcf(xml, where)  # the defaults are read from the model
     xml, site_name, body = _end_effector_site(model, xml, target, end_effector_offset, where)
     if joints is None:
         joints = _path_joints(model, body)
@@ -751,7 +479,7 @@ def robot_from_mjcf_text(
             )
     names = _joint_tuple(joints, where)
     if velocity_limits is not None:
-        xml = _with_velocity_limits(xml, model, names, velocity_limits, where)
+        xml = with_velocity_limits(xml, model, names, velocity_limits, where)
     return Robot(name, xml, names, site_name, source, tuple(files))
 
 
