@@ -19,10 +19,14 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from evojax_motion.cli.report import add_report_parser, run_report
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.database import DatabaseMeta, make_database, save_database
 from evojax_motion.report import build as report
 from evojax_motion.report import render as rnd
+from evojax_motion.report.condition import catch_camera, throw
+from evojax_motion.report.figures import FIGURES, tradeoff_figure
+from evojax_motion.report.html import HTML_FILE
 from evojax_motion.settings import config_to_yaml, load_config
 
 T, N_HUMAN, M = 24, 40, 6
@@ -41,7 +45,7 @@ GEN_FIELDS = (
     "n_rejected_limits",
     "bc_residual_max",
 )
-ALL_FIGURES = tuple(report.FIGURES)
+ALL_FIGURES = tuple(FIGURES)
 
 
 def _motions(rng, robot, qf, bump):
@@ -113,7 +117,7 @@ def make_fake_run(path: Path, generations: int = 2) -> Path:
 def _parse(argv):
     parser = argparse.ArgumentParser()
     sub = parser.add_subparsers(dest="command", required=True)
-    report.add_report_parser(sub)
+    add_report_parser(sub)
     return parser.parse_args(argv)
 
 
@@ -140,7 +144,7 @@ def full_report(fake_run, tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
     args = _parse(["report", str(fake_run), "--out", str(out), "--gif-frames", "12", "--quiet"])
     try:
-        status = report.run_report(args)
+        status = run_report(args)
     finally:
         mp.undo()
     return status, out
@@ -152,7 +156,7 @@ def test_report_writes_every_figure(full_report):
     assert status == 0
     for name in ALL_FIGURES:
         _check_image(out / name)
-    page = (out / report.HTML_FILE).read_text()
+    page = (out / HTML_FILE).read_text()
     assert page.count("data:image/png;base64,") == len(ALL_FIGURES) - 1
     assert page.count("data:image/gif;base64,") == 1
     assert "<img" in page and "src='figures/" not in page  # self-contained
@@ -165,7 +169,7 @@ def test_missing_files_are_named_and_the_rest_is_written(fake_run, tmp_path, cap
     (run / "db_final.npz").unlink()
     (run / "metrics.jsonl").write_text("{not json\n")
     out = tmp_path / "out"
-    status = report.run_report(_parse(["report", str(run), "--out", str(out), "--quiet"]))
+    status = run_report(_parse(["report", str(run), "--out", str(out), "--quiet"]))
     err = capsys.readouterr().err
     assert status == 1
     assert "db_final.npz" in err and "metrics.jsonl" in err
@@ -173,7 +177,7 @@ def test_missing_files_are_named_and_the_rest_is_written(fake_run, tmp_path, cap
     for name in ("fig5_costs.png", "fig8_generations.png", "fig10_interp_vs_optim.png",
                  "catch.gif", "fig7_snapshots.png"):  # fmt: skip
         assert not (out / name).exists(), name
-    page = (out / report.HTML_FILE).read_text()
+    page = (out / HTML_FILE).read_text()
     assert "db_final.npz: missing" in page and "line 1: not JSON" in page
 
 
@@ -373,7 +377,7 @@ def _tradeoff_labels(metrics):
     """Texts and their window extents of the trade-off plot's generation labels."""
     import matplotlib.pyplot as plt
 
-    fig = report.tradeoff_figure(metrics, BASELINE)
+    fig = tradeoff_figure(metrics, BASELINE)
     try:
         renderer = fig.canvas.get_renderer()
         ax = fig.axes[0]
@@ -418,7 +422,7 @@ def test_catch_animation_keeps_the_ball_in_view(reach):
     width, height = 320, 240  # report.py's frame size (fit_camera's 4:3)
     target = rnd.site_positions(robot, q[-1:])[0]
     gravity = np.asarray(robot.mj_model.opt.gravity, float)
-    p0, v0, t_pass = report.throw(target, 0.65, gravity, 0.1)
+    p0, v0, t_pass = throw(target, 0.65, gravity, 0.1)
     t = np.linspace(0.0, t_pass, 40)[:, None]
     balls = p0 + v0 * t + 0.5 * gravity * t**2
     assert balls[:, 2].max() > target[2] + 0.5  # the arc rises well above the catch point
@@ -430,5 +434,5 @@ def test_catch_animation_keeps_the_ball_in_view(reach):
         r = focal * rnd.BALL_RADIUS / depth  # the ball's radius [px]
         return (depth > 0) & (u - r >= 0) & (u + r <= width) & (v - r >= 0) & (v + r <= height)
 
-    assert inside(report.catch_camera(robot, q, balls)).all()
+    assert inside(catch_camera(robot, q, balls)).all()
     assert not inside(rnd.fit_camera(robot, [q], rnd.VIEWS["catch"], target[None])).all()

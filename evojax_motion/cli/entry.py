@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_import_parser(sub)
 
     from evojax_motion.cli.online import add_online_parsers
-    from evojax_motion.report.build import add_report_parser
+    from evojax_motion.cli.report import add_report_parser
 
     add_online_parsers(sub)
 
