@@ -23,10 +23,12 @@ from evojax_motion.cli.report import add_report_parser, run_report
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.database import DatabaseMeta, make_database, save_database
 from evojax_motion.report import build as report
+from evojax_motion.report import kinematics as kin
 from evojax_motion.report import render as rnd
 from evojax_motion.report.condition import catch_camera, throw
 from evojax_motion.report.figures import FIGURES, tradeoff_figure
 from evojax_motion.report.html import HTML_FILE
+from evojax_motion.report.sticks import render_sticks
 from evojax_motion.settings import config_to_yaml, load_config
 
 T, N_HUMAN, M = 24, 40, 6
@@ -72,10 +74,10 @@ def make_fake_run(path: Path, generations: int = 2) -> Path:
     qf_h = np.clip(nominal + rng.normal(0, 0.15, (N_HUMAN, j)), lo, hi)
     q_h = _motions(rng, robot, qf_h, rng.normal(0, 0.08, (N_HUMAN, j)))
     dur_h = rng.uniform(0.6, 0.9, N_HUMAN).astype(np.float32)
-    cond_h = rnd.site_positions(robot, qf_h).astype(np.float32)
+    cond_h = kin.site_positions(robot, qf_h).astype(np.float32)
 
     qf_c = np.clip(nominal + rng.normal(0, 0.08, (M, j)), lo, hi)
-    target = rnd.site_positions(robot, qf_c).astype(np.float32)
+    target = kin.site_positions(robot, qf_c).astype(np.float32)
     dur_c = np.full(M, 0.75, np.float32)
     meta = DatabaseMeta(robot.name, robot.mjcf, tuple(names), robot.site_name, True, "test")
 
@@ -223,15 +225,15 @@ def reach():
     robot = load_robot("mahru_arm")
     q = np.zeros((3, robot.n_joints))
     q[1, 1], q[2, 1], q[2, 4] = 0.8, 1.5, 1.0
-    cam = rnd.fit_camera(robot, [q], rnd.VIEWS["three_quarter"])
+    cam = kin.fit_camera(robot, [q], kin.VIEWS["three_quarter"])
     return robot, q, cam
 
 
 def test_fit_camera_keeps_every_geom_in_the_picture(reach):
     robot, q, cam = reach
     w, h = 320, 240
-    pts = rnd.geom_points(robot, [q])
-    u, v, depth, _ = rnd.project(pts, cam, robot.mj_model.vis.global_.fovy, w, h)
+    pts = kin.geom_points(robot, [q])
+    u, v, depth, _ = kin.project(pts, cam, robot.mj_model.vis.global_.fovy, w, h)
     assert (depth > 0).all()
     assert u.min() >= -1 and u.max() <= w + 1 and v.min() >= -1 and v.max() <= h + 1
     # ... and tight: the extent fills most of the picture along one axis (perspective: ~0.8)
@@ -246,14 +248,14 @@ def test_catch_frames_timeline(reach):
     ball_t = np.linspace(0.0, 1.5, 16)
     ball = np.stack([2.0 - ball_t, -0.3 + 0 * ball_t, 1.0 + ball_t - ball_t**2], axis=1)
     times = np.array([0.0, 0.2, 0.3, 0.6, 0.9, 1.0, 1.2])
-    q_f, ball_f = rnd.catch_frames(robot, t_motion, q, ball_t, ball, 0.9, times)
+    q_f, ball_f = kin.catch_frames(robot, t_motion, q, ball_t, ball, 0.9, times)
     np.testing.assert_allclose(q_f[:3], np.tile(q[0], (3, 1)), atol=1e-12)
     np.testing.assert_allclose(q_f[3], q[1], atol=1e-12)  # the grid's middle sample
     np.testing.assert_allclose(q_f[4:], np.tile(q[-1], (3, 1)), atol=1e-12)
     np.testing.assert_allclose(ball_f[:1], ball[:1], atol=1e-12)
     for k in range(3):  # linear in time between flight samples
         np.testing.assert_allclose(ball_f[1:4, k], np.interp(times[1:4], ball_t, ball[:, k]))
-    hand = rnd.site_positions(robot, q[-1:])[0]
+    hand = kin.site_positions(robot, q[-1:])[0]
     np.testing.assert_allclose(ball_f[4:], np.tile(hand, (3, 1)), atol=1e-12)
 
 
@@ -265,7 +267,7 @@ def _foreground(images):
 
 def test_stick_fallback_matches_mujoco_framing(reach):
     robot, q, cam = reach
-    sticks = rnd.render_sticks(robot, q, [cam], label="")
+    sticks = render_sticks(robot, q, [cam], label="")
     assert sticks.shape == (3, 240, 320, 3) and sticks.dtype == np.uint8
     assert _foreground(sticks).mean(axis=(1, 2)).min() > 0.02  # a figure in every frame
     # the arm moves: frames differ
@@ -420,7 +422,7 @@ def test_catch_animation_keeps_the_ball_in_view(reach):
     the head, catch) with the ball's radius; framing only the arm would not."""
     robot, q, _ = reach
     width, height = 320, 240  # report.py's frame size (fit_camera's 4:3)
-    target = rnd.site_positions(robot, q[-1:])[0]
+    target = kin.site_positions(robot, q[-1:])[0]
     gravity = np.asarray(robot.mj_model.opt.gravity, float)
     p0, v0, t_pass = throw(target, 0.65, gravity, 0.1)
     t = np.linspace(0.0, t_pass, 40)[:, None]
@@ -430,9 +432,9 @@ def test_catch_animation_keeps_the_ball_in_view(reach):
     fovy = robot.mj_model.vis.global_.fovy
 
     def inside(cam):
-        u, v, depth, focal = rnd.project(balls, cam, fovy, width, height)
-        r = focal * rnd.BALL_RADIUS / depth  # the ball's radius [px]
+        u, v, depth, focal = kin.project(balls, cam, fovy, width, height)
+        r = focal * kin.BALL_RADIUS / depth  # the ball's radius [px]
         return (depth > 0) & (u - r >= 0) & (u + r <= width) & (v - r >= 0) & (v + r <= height)
 
     assert inside(catch_camera(robot, q, balls)).all()
-    assert not inside(rnd.fit_camera(robot, [q], rnd.VIEWS["catch"], target[None])).all()
+    assert not inside(kin.fit_camera(robot, [q], kin.VIEWS["catch"], target[None])).all()

@@ -32,7 +32,8 @@ from evojax_motion.model.robot import (
     robot_from_mjcf_text,
 )
 from evojax_motion.motion.database import DatabaseMeta, load_database, make_database, save_database
-from evojax_motion.report.render import robot_from_meta, scene_model
+from evojax_motion.report.kinematics import robot_from_meta
+from evojax_motion.report.render import scene_model
 from evojax_motion.run.workflow import make_robot
 from evojax_motion.settings import config_from_dict
 

@@ -138,7 +138,7 @@ def _json_safe(x):
 def _animate(args, robot, rollout, settings, out: Path) -> str:
     """Render the rollout into ``out / ANIMATION_FILE``; returns the renderer used."""
     from evojax_motion.online.simulate import frame_indices
-    from evojax_motion.report import render
+    from evojax_motion.report import kinematics, render
 
     idx = frame_indices(rollout, settings.fps)
     q, balls = rollout.q[idx], rollout.ball[idx]
@@ -146,9 +146,9 @@ def _animate(args, robot, rollout, settings, out: Path) -> str:
         np.linalg.norm(balls[:, None, :] - rollout.hand_ref[None, ::10, :], axis=2), axis=1
     )
     extra = balls[np.isfinite(near) & (near <= _NEAR_PATH)]
-    view = render.VIEWS["catch" if np.isfinite(balls).any() else "three_quarter"]
-    camera = render.fit_camera(robot, [q], view, extra_points=extra if extra.size else None)
-    floor = render.floor_height(robot, [q])
+    view = kinematics.VIEWS["catch" if np.isfinite(balls).any() else "three_quarter"]
+    camera = kinematics.fit_camera(robot, [q], view, extra_points=extra if extra.size else None)
+    floor = kinematics.floor_height(robot, [q])
     width, height = ANIMATION_SIZE
     frames = render.render_motion(
         robot, q, [camera], balls, width, height, floor, renderer=args.renderer

@@ -51,7 +51,7 @@ import numpy as np
 
 from evojax_motion.errors import UserError, check_setting
 from evojax_motion.model.robot import Robot, mj_inverse_torques
-from evojax_motion.report.render import BALL_RADIUS
+from evojax_motion.report.kinematics import BALL_RADIUS
 
 BALL_BODY = "evojax_ball"
 _ROBOT_AFFINITY, _BALL_TYPE = 0, 2  # contype / conaffinity bits: see the module docstring
@@ -308,7 +308,7 @@ def simulate(
 
 
 def _site_positions(robot: Robot, q) -> np.ndarray:
-    from evojax_motion.report.render import site_positions
+    from evojax_motion.report.kinematics import site_positions
 
     return site_positions(robot, q)
 

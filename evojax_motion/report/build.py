@@ -218,6 +218,7 @@ def _condition_figures(
     data, ctx, rep, out, joint, renderer, snapshots, gif_frames, animation, blocked, wrote, say
 ) -> None:
     """The figures of one condition: Fig. 4, 8, 10, 7, 9 and the catch animation."""
+    from evojax_motion.report import kinematics as kin
     from evojax_motion.report import render as rnd
     from evojax_motion.report.plots import plot_joint_angles
 
@@ -290,8 +291,8 @@ def _condition_figures(
 
     # --- rendered figures: every frame in one renderer call (one GL context)
     width, height = 320, 240
-    times = rnd.snapshot_times(ctx.duration, snapshots)
-    views = [rnd.VIEWS["front"], rnd.VIEWS["side"]]
+    times = kin.snapshot_times(ctx.duration, snapshots)
+    views = [kin.VIEWS["front"], kin.VIEWS["side"]]
     jobs: dict[str, tuple[list[str], list[np.ndarray]]] = {}
     if not blocked("fig7_snapshots.png"):
         jobs["fig7_snapshots.png"] = (["generation 1", f"generation {last_gen}"], [q_first, q_last])
@@ -309,12 +310,12 @@ def _condition_figures(
         motions.append(catch[0])
     if not motions:
         return
-    floor = rnd.floor_height(robot, motions)
+    floor = kin.floor_height(robot, motions)
     ball_target = np.tile(ctx.target, (snapshots, 1))
     for name, (labels, qs) in jobs.items():
-        frames_q = [rnd.resample(q, times, ctx.duration) for q in qs]
+        frames_q = [kin.resample(q, times, ctx.duration) for q in qs]
         for view in views:
-            cam = rnd.fit_camera(robot, frames_q, view, ctx.target[None])
+            cam = kin.fit_camera(robot, frames_q, view, ctx.target[None])
             for label, fq in zip(labels, frames_q):
                 batches.append(_Batch(fq, [cam], ball_target))
                 layout.append((name, f"{label}\n{view.name}"))

@@ -84,7 +84,7 @@ def condition_context(
     from evojax_motion.compiler.interpolation import Boundary
     from evojax_motion.motion.database import count_human
     from evojax_motion.motion.timegrid import make_time_grid
-    from evojax_motion.report.render import robot_from_meta
+    from evojax_motion.report.kinematics import robot_from_meta
 
     pair = data.db_final or data.db_gen1 or data.db_initial
     db, meta = pair
@@ -224,7 +224,7 @@ def catch_animation(data: RunData, ctx: Context, frames: int, notes: list[str]):
 
     from evojax_motion.online.catching import CatchSettings, explain_plan, make_catcher
     from evojax_motion.online.generation import online_database
-    from evojax_motion.report import render as rnd
+    from evojax_motion.report import kinematics as kin
 
     settings = CatchSettings()
     gravity = np.asarray(ctx.robot.mj_model.opt.gravity, float)
@@ -250,17 +250,17 @@ def catch_animation(data: RunData, ctx: Context, frames: int, notes: list[str]):
         )
     t_end = 1.25 * t_catch  # hold the catch a moment
     times = np.linspace(0.0, t_end, frames)
-    q_f, ball_f = rnd.catch_frames(ctx.robot, t_motion, q, ball_t, ball, t_catch, times)
+    q_f, ball_f = kin.catch_frames(ctx.robot, t_motion, q, ball_t, ball, t_catch, times)
     return q_f, ball_f, frames / t_end
 
 
 def catch_camera(robot, q, balls):
     """The camera of ``catch.gif``: the arm's motion ``q (F, J)`` and every ball position
     ``balls (F, 3)`` [m] in the picture (the ball never leaves the view), ball's radius included."""
-    from evojax_motion.report import render as rnd
+    from evojax_motion.report import kinematics as kin
 
     balls = np.asarray(balls, float)
     # the ball's extent: its centre +- the radius along each axis
-    offsets = rnd.BALL_RADIUS * np.concatenate([np.eye(3), -np.eye(3)])
+    offsets = kin.BALL_RADIUS * np.concatenate([np.eye(3), -np.eye(3)])
     points = (balls[:, None, :] + offsets[None]).reshape(-1, 3)
-    return rnd.fit_camera(robot, [q], rnd.VIEWS["catch"], points)
+    return kin.fit_camera(robot, [q], kin.VIEWS["catch"], points)
