@@ -18,7 +18,7 @@ from xml.etree import ElementTree
 import mujoco
 import numpy as np
 
-from evojax_motion.errors import UserError
+from evojax_motion.errors import UserError, read_user_file
 
 
 def object_names(m: mujoco.MjModel, obj: mujoco.mjtObj, count: int) -> list[str]:
@@ -77,12 +77,7 @@ def read_mjcf(path: str | os.PathLike) -> ModelText:
     are refused (`UserError`). Dynamics never read meshes; they are kept for pictures.
     """
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: MJCF file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise UserError(f"{path}: cannot read the MJCF file: {err}") from None
+    text = read_user_file(path, "MJCF")
     try:
         spec = mujoco.MjSpec.from_file(str(path))
     except Exception as err:  # mujoco raises ValueError

@@ -32,7 +32,7 @@ import yaml
 from evojax_motion.compiler.basis import BasisSettings
 from evojax_motion.compiler.optimisation import OptimSettings
 from evojax_motion.demonstrations.synthetic import DemoSettings
-from evojax_motion.errors import UserError
+from evojax_motion.errors import UserError, read_user_file
 from evojax_motion.evolution.sharding import ParallelSettings
 from evojax_motion.evolution.step import EvolutionSettings
 from evojax_motion.online.generation import MAX_DURATION
@@ -341,12 +341,7 @@ def load_config(path: str | os.PathLike, overrides: typing.Sequence[str] = ()) -
     """Read YAML ``path`` (`load_yaml`: safe, duplicate keys refused), apply overrides,
     validate. Raises ``UserError`` naming the file or the ``--set`` argument, and the key."""
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: config file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise UserError(f"{path}: unreadable config file ({type(e).__name__})") from None
+    text = read_user_file(path, "config")
     try:
         data = load_yaml(text)
     except yaml.YAMLError as e:
