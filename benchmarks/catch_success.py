@@ -50,7 +50,7 @@ from result_files import machine_line, write_result  # noqa: E402
 
 from evojax_motion.linalg.precision import exact_matmuls  # noqa: E402
 from evojax_motion.motion.database import Database, humans_only  # noqa: E402
-from evojax_motion.online.catching import CatchSettings, make_catcher  # noqa: E402
+from evojax_motion.online.catching import make_catcher  # noqa: E402
 from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
     joint_limits_f32,
@@ -59,11 +59,11 @@ from evojax_motion.online.generation import (  # noqa: E402
 from evojax_motion.online.simulate import (  # noqa: E402
     Ball,
     Plan,
-    SimSettings,
     Summary,
     simulate,
     summarise,
 )
+from evojax_motion.settings.online import CatchSettings, SimSettings  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 THROWER = {

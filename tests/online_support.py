@@ -19,7 +19,8 @@ from evojax_motion.model.robot import Robot, load_robot
 from evojax_motion.model.robot import mj_inverse_torques as reference_torques
 from evojax_motion.motion.database import Database, DatabaseMeta, make_database
 from evojax_motion.motion.timegrid import TimeGrid, make_time_grid
-from evojax_motion.online.generation import OnlineSettings, make_online_generator, online_database
+from evojax_motion.online.generation import make_online_generator, online_database
+from evojax_motion.settings.online import OnlineSettings
 
 SAMPLES = 32  # T: small for compile time, large enough for the BC algebra (compile_interp)
 N_PRIMITIVES = 60
@@ -101,7 +102,8 @@ CATCH_KW = {"horizon": 1.2, "samples": 121}  # = the CLI's settings for ``--hori
 @functools.cache
 def catcher():
     """``(settings, jitted catcher)`` of `online_env` (`online.catching.make_catcher`)."""
-    from evojax_motion.online.catching import CatchSettings, make_catcher
+    from evojax_motion.online.catching import make_catcher
+    from evojax_motion.settings.online import CatchSettings
 
     env = online_env()
     catch = CatchSettings(**CATCH_KW)

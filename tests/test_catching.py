@@ -10,11 +10,11 @@ from online_support import catcher, cli_session, online_env
 
 from evojax_motion.errors import UserError
 from evojax_motion.online.catching import (
-    CatchSettings,
     ball_flight,
     explain_plan,
     validate_ball,
 )
+from evojax_motion.settings.online import CatchSettings
 
 TOL_FLIGHT = 1e-4  # m: float32 ballistic positions over 1.5 s (|p| ~ 3 m)
 TOL_DRAG = 1e-4  # m: RK4 (4 substeps of 10 ms) vs SciPy's DOP853 at 1e-10

@@ -25,7 +25,6 @@ from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, basis_functions, compile_interpolation
 from evojax_motion.errors import UserError
 from evojax_motion.online.generation import (
-    OnlineSettings,
     enforce_limits,
     make_online_generator,
     minimum_jerk,
@@ -33,6 +32,7 @@ from evojax_motion.online.generation import (
     spd_solve,
     to_numpy,
 )
+from evojax_motion.settings.online import OnlineSettings
 
 TOL_HAND = 1e-3  # m: final hand error of a reachable target (the benchmark asks <= 5 mm p95)
 TOL_Q = 1e-5  # rad: float32 agreement of two evaluations of the same trajectory

@@ -151,7 +151,8 @@ def test_catch_that_cannot_arrive_in_time_exits_2_with_figures(
     from test_online import _cli
 
     from evojax_motion.cli import online as online_cli
-    from evojax_motion.online.catching import CatchSettings, make_catcher
+    from evojax_motion.online.catching import make_catcher
+    from evojax_motion.settings.online import CatchSettings
 
     rushed = CatchSettings(**CATCH_KW, speedup=4.0)
     fn = make_catcher(env.robot, env.dyn, env.grid, BASIS, SETTINGS, rushed)
@@ -191,7 +192,8 @@ def test_gravity_over_a_torque_limit_has_no_motion(env, db_file, tmp_path, capsy
     from evojax_motion.cli import online as online_cli
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.model.robot import robot_from_mjcf_text
-    from evojax_motion.online.generation import MAX_DURATION, OnlineModel, make_online_generator
+    from evojax_motion.online.generation import OnlineModel, make_online_generator
+    from evojax_motion.settings.online import MAX_DURATION
 
     mjcf = env.robot.mjcf.replace(
         'range="-0.872665 2.967060"\n               actuatorfrcrange="-80 80"',

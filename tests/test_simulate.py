@@ -17,12 +17,12 @@ from online_support import catcher, cli_session, mj_inverse_torques, online_env,
 from evojax_motion.online.simulate import (
     Ball,
     Plan,
-    SimSettings,
     reference,
     simulate,
     simulation_model,
     summarise,
 )
+from evojax_motion.settings.online import SimSettings
 
 SETTINGS = SimSettings()
 GRAVITY = np.array([0.0, 0.0, -9.81])

@@ -272,7 +272,7 @@ def cmd_generate(args) -> int:
 def _catch_settings(args):
     import dataclasses
 
-    from evojax_motion.online.catching import CatchSettings
+    from evojax_motion.settings.online import CatchSettings
 
     for flag, value in (("--drag", args.drag), ("--reaction", args.reaction)):
         if value is not None and not np.isfinite(value):

@@ -161,9 +161,10 @@ def cmd_simulate(args) -> int:
     """``evojax-motion simulate``: plan, execute in MuJoCo, report; exit 0, or `UserError`."""
     from evojax_motion.cli.online import _open, _print_table
     from evojax_motion.online.generation import describe_limits
-    from evojax_motion.online.simulate import Plan, SimSettings, simulate, summarise
+    from evojax_motion.online.simulate import Plan, simulate, summarise
     from evojax_motion.report.render import RenderUnavailable
     from evojax_motion.run.cache import enable_compile_cache
+    from evojax_motion.settings.online import SimSettings
 
     out = _check_args(args)
     enable_compile_cache()

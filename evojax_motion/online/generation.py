@@ -76,7 +76,7 @@ from evojax_motion.compiler.interpolation import (
     compile_interpolation,
     solve_boundary,
 )
-from evojax_motion.errors import UserError, check_setting
+from evojax_motion.errors import UserError
 from evojax_motion.linalg.cholesky import spd_solve
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
@@ -85,80 +85,7 @@ from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import EVOLVED, Database
 from evojax_motion.motion.objective import cost_from_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
-
-
-@dataclass(frozen=True)
-class OnlineSettings:
-    """Settings of the online query (static under jit).
-
-    - ``n_components``: principal components of the interpolation (paper eq. 1: 3).
-    - ``limit_components``: components whose BC null space the limit projection moves in (>=
-      ``n_components``; 4 = the optimisation compiler's eq. 3 basis).
-    - ``min_neighbours``: a target is inside the learned region when at least this many valid
-      primitives lie within ``BasisSettings.radius`` of it (<= ``BasisSettings.neighbours``).
-    - ``prefer_evolved``: take the neighbours among the evolved (robot-optimised) primitives when
-      at least ``min_neighbours`` of them lie within the radius, else among all valid ones. The
-      human originals stay in the database for the evolution's sake (sec. 4.3); online, a basis
-      mixing them in pulls the motion back toward the human's torques (benchmarks/online_quality:
-      median eq. 5 cost 9.4 with all entries, 6.1 with evolved ones, paper setting).
-    - ``ik_iters``: IK iterations (started from the nearest neighbour's final posture; on the
-      paper-setting database 8 already reach the final accuracy, p95 6e-5 m).
-    - ``reach_tolerance`` [m]: a target whose IK posture misses it by more is unreachable.
-    - ``limit_margin`` [rad]: the limit projection aims this far inside the joint limits.
-    - ``projection_iters``: semi-smooth Newton steps of the limit projection.
-    - ``penalty``: weight of a limit violation relative to the null-space step (scale-free).
-    - ``limit_headroom``: fraction of every velocity and torque limit that time scaling keeps
-      free (for a tracking controller's feedback; docs/simulation.md): motions are planned
-      within ``(1 - limit_headroom)`` times the limits.
-    - ``scaling_scan``, ``scaling_iters``: durations scanned (log-spaced up to `MAX_DURATION`)
-      and bisection steps of the time scaling.
-    """
-
-    n_components: int = 3
-    limit_components: int = 4
-    min_neighbours: int = 4
-    prefer_evolved: bool = True
-    ik_iters: int = 10
-    reach_tolerance: float = 1e-3
-    limit_margin: float = 2e-3
-    projection_iters: int = 8
-    penalty: float = 1e4
-    limit_headroom: float = 0.05
-    scaling_scan: int = 32
-    scaling_iters: int = 24
-
-    def __post_init__(self):
-        check_setting(self.n_components >= 1, "n_components", "an integer >= 1", self.n_components)
-        check_setting(
-            self.limit_components >= self.n_components,
-            "limit_components",
-            f"an integer >= n_components ({self.n_components})",
-            self.limit_components,
-        )
-        check_setting(
-            self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours
-        )
-        check_setting(self.ik_iters >= 1, "ik_iters", "an integer >= 1", self.ik_iters)
-        check_setting(
-            self.reach_tolerance > 0, "reach_tolerance", "a number > 0 [m]", self.reach_tolerance
-        )
-        check_setting(
-            self.limit_margin >= 0, "limit_margin", "a number >= 0 [rad]", self.limit_margin
-        )
-        check_setting(
-            self.projection_iters >= 0, "projection_iters", "an integer >= 0", self.projection_iters
-        )
-        check_setting(self.penalty > 0, "penalty", "a number > 0", self.penalty)
-        check_setting(
-            0 <= self.limit_headroom < 1,
-            "limit_headroom",
-            "a number in [0, 1)",
-            self.limit_headroom,
-        )
-        check_setting(self.scaling_scan >= 2, "scaling_scan", "an integer >= 2", self.scaling_scan)
-        check_setting(
-            self.scaling_iters >= 0, "scaling_iters", "an integer >= 0", self.scaling_iters
-        )
+from evojax_motion.settings.online import MAX_DURATION, OnlineSettings
 
 
 class OnlineResult(NamedTuple):
@@ -409,7 +336,6 @@ def enforce_limits(
     return q, jnp.maximum(excess, 0.0), fallback
 
 
-MAX_DURATION = 60.0  # [s] the longest motion a query may ask for or be stretched to
 TORQUE, VELOCITY = 0, 1  # `OnlineResult.worst_kind`
 
 

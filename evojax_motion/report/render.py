@@ -44,12 +44,12 @@ import mujoco
 import numpy as np
 
 from evojax_motion.model.robot import Robot, robot_from_mjcf_text
+from evojax_motion.settings.online import BALL_RADIUS
 
 GL_BACKENDS = ("egl", "osmesa")
 STICK_LABEL = "stick figure (fallback: no OpenGL)"
 WORKER_TIMEOUT_S = 600.0
 PROBE_TIMEOUT_S = 120.0
-BALL_RADIUS = 0.035  # [m], a tennis ball
 BALL_RGBA = (1.0, 0.55, 0.0, 1.0)
 _DISABLED = ("disable", "disabled", "off", "false", "0")
 
