@@ -45,12 +45,12 @@ from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
     exact_matmuls,
     finish_motion,
-    joint_limits_f32,
     load_online_model,
     online_database,
-    reach_query,
     to_numpy,
 )
+from evojax_motion.online.limits import joint_limits_f32  # noqa: E402
+from evojax_motion.online.reach import reach_query  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 HELD_OUT_STREAM = 1000  # fold_in index of the held-out targets' key (training uses 1)

@@ -89,8 +89,8 @@ def online_env() -> Env:
 
 @functools.cache
 def reach_checker():
-    """The jitted `online.generation.make_reach_checker` of `online_env`."""
-    from evojax_motion.online.generation import make_reach_checker
+    """The jitted `online.reach.make_reach_checker` of `online_env`."""
+    from evojax_motion.online.reach import make_reach_checker
 
     env = online_env()
     return make_reach_checker(env.robot, env.dyn, BASIS, SETTINGS)

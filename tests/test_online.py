@@ -24,14 +24,10 @@ from online_support import (
 from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, basis_functions, compile_interpolation
 from evojax_motion.errors import UserError
-from evojax_motion.online.generation import (
-    enforce_limits,
-    make_online_generator,
-    minimum_jerk,
-    nearest_reachable,
-    spd_solve,
-    to_numpy,
-)
+from evojax_motion.linalg.cholesky import spd_solve
+from evojax_motion.online.generation import make_online_generator, to_numpy
+from evojax_motion.online.limits import enforce_limits, minimum_jerk
+from evojax_motion.online.reach import nearest_reachable
 from evojax_motion.settings.online import OnlineSettings
 
 TOL_HAND = 1e-3  # m: final hand error of a reachable target (the benchmark asks <= 5 mm p95)
@@ -75,7 +71,8 @@ def test_accelerator_path_matches_lapack(env, near, monkeypatch):
     import evojax_motion.compiler.basis as basis_module
     import evojax_motion.compiler.interpolation as interp_module
     from evojax_motion.linalg.precision import exact_matmuls
-    from evojax_motion.online.generation import joint_limits_f32, online_query, to_numpy
+    from evojax_motion.online.generation import online_query, to_numpy
+    from evojax_motion.online.limits import joint_limits_f32
 
     targets, _ = near
     lower, upper = joint_limits_f32(env.robot)

@@ -19,7 +19,8 @@ from online_support import (
     query,
 )
 
-from evojax_motion.online.generation import TimeLaw, explain_unusable, shortest_duration
+from evojax_motion.online.explain import explain_unusable
+from evojax_motion.online.limits import TimeLaw, shortest_duration
 
 HEADROOM = SETTINGS.limit_headroom
 TOL_SEARCH = 1e-5  # relative: the scan + 24 bisection steps vs a closed-form shortest duration

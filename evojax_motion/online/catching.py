@@ -11,7 +11,7 @@ tennis ball ~0.01), integrated by RK4; without drag the closed form. The flight 
 (z < 0).
 
 Catch point. A sample ``(t_i, p_i)`` can be the catch when
-  - ``p_i`` is reachable (`online.generation.Reach`: inside the learned region and reached by the
+  - ``p_i`` is reachable (`online.reach.Reach`: inside the learned region and reached by the
   IK), and
   - the hand can get there in time: the motion starts after the ``reaction_time`` and may be at
     most ``speedup`` times faster than the natural (the neighbours' mean) duration ``D_nat``:
@@ -44,14 +44,9 @@ from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import Database
 from evojax_motion.motion.timegrid import TimeGrid
-from evojax_motion.online.generation import (
-    OnlineResult,
-    build_problem,
-    finish_motion,
-    joint_limits_f32,
-    reach_query,
-    resolve_settings,
-)
+from evojax_motion.online.generation import OnlineResult, build_problem, finish_motion
+from evojax_motion.online.limits import joint_limits_f32
+from evojax_motion.online.reach import reach_query, resolve_settings
 from evojax_motion.settings.online import CatchSettings, OnlineSettings
 
 
