@@ -50,20 +50,17 @@ from result_files import machine_line, write_result  # noqa: E402
 
 from evojax_motion.linalg.precision import exact_matmuls  # noqa: E402
 from evojax_motion.motion.database import Database, humans_only  # noqa: E402
-from evojax_motion.online.catching import CatchSettings, make_catcher  # noqa: E402
-from evojax_motion.online.generation import (  # noqa: E402
-    build_problem,
-    joint_limits_f32,
-    online_database,
-)
+from evojax_motion.online.catching import make_catcher  # noqa: E402
+from evojax_motion.online.generation import build_problem, online_database  # noqa: E402
+from evojax_motion.online.limits import joint_limits_f32  # noqa: E402
 from evojax_motion.online.simulate import (  # noqa: E402
     Ball,
     Plan,
-    SimSettings,
     Summary,
     simulate,
     summarise,
 )
+from evojax_motion.settings.online import CatchSettings, SimSettings  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 THROWER = {

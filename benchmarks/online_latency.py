@@ -52,13 +52,13 @@ from evojax_motion.motion.database import (  # noqa: E402
     save_database,
 )
 from evojax_motion.online.generation import (  # noqa: E402
-    joint_limits_f32,
     load_online_model,
     make_online_generator,
     online_database,
     online_query,
     to_numpy,
 )
+from evojax_motion.online.limits import joint_limits_f32  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 DEFAULT_DB = ROOT / "runs" / "online_latency_db.npz"

@@ -8,7 +8,7 @@ neighbours' mean) and three motions with those same BCs are compared:
 - learned: the online motion, interpolation (eq. 1-2) from the learned database + limits;
 - optimised: the movement compiler via optimisation (eq. 3-5) on the same basis as the online
   motion (the learned database's neighbours, evolved ones preferred:
-  `online.generation.OnlineSettings`),
+  `settings.online.OnlineSettings`),
   the run's compiler settings (the expensive reference the paper compares with, Fig. 9-10);
   also reported on the evolution's own neighbour rule (every valid entry, humans included);
 - human: interpolation from the human-only database (the same online pipeline).
@@ -45,12 +45,12 @@ from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
     exact_matmuls,
     finish_motion,
-    joint_limits_f32,
     load_online_model,
     online_database,
-    reach_query,
     to_numpy,
 )
+from evojax_motion.online.limits import joint_limits_f32  # noqa: E402
+from evojax_motion.online.reach import reach_query  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 HELD_OUT_STREAM = 1000  # fold_in index of the held-out targets' key (training uses 1)

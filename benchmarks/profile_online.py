@@ -4,11 +4,11 @@ Stages (each jitted alone at full float32 precision, timed after compilation, me
 ``--repeats``), for ``--batch`` targets near the database's conditions (as
 ``benchmarks/online_latency.py``):
 ``neighbours`` (eq. 6, the learned region and the evolved-only search), ``reach`` (+ the
-human-like IK of the final posture: `online.generation.reach_query`), ``build`` (+ the per-joint
+human-like IK of the final posture: `online.reach.reach_query`), ``build`` (+ the per-joint
 PCA and the
 BCs: `online.generation.build_problem`), ``interp`` (eq. 1-2,
 `compiler.interpolation.compile_interpolation`),
-``limits`` (`online.generation.enforce_limits`, its projection forced on by narrowing the limits by
+``limits`` (`online.limits.enforce_limits`, its projection forced on by narrowing the limits by
 ``--narrow`` of their span), ``dynamics`` (derivatives, inverse dynamics, eq. 5 cost), ``finish``
 (`online.generation.finish_motion`: interp + limits + dynamics + checks) and ``query`` (all of it,
 the
@@ -46,14 +46,13 @@ from evojax_motion.motion.objective import cost_from_torques  # noqa: E402
 from evojax_motion.motion.timegrid import derivatives  # noqa: E402
 from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
-    enforce_limits,
     finish_motion,
-    joint_limits_f32,
     load_online_model,
     make_online_generator,
     online_database,
-    reach_query,
 )
+from evojax_motion.online.limits import enforce_limits, joint_limits_f32  # noqa: E402
+from evojax_motion.online.reach import reach_query  # noqa: E402
 
 
 def main(argv=None) -> None:

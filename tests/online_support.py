@@ -1,43 +1,33 @@
-"""Shared, cached set-up of the online tests (test_online, test_catching, test_export).
+"""Shared, cached set-up of the online tests (test_online, test_online_limits, test_catching,
+test_simulate, test_export).
 
-A small synthetic database is built in numpy with C MuJoCo's forward kinematics (no XLA compile),
-and the jitted online functions are built once per test process (`functools.cache`), so the test
-modules share their compilations.
+A small synthetic database is built in numpy with C MuJoCo's forward kinematics
+(`online.generation.final_hand`, no XLA compile), and the jitted online functions are built once
+per test process (`functools.cache`), so the test modules share their compilations. The command
+line runs in-process (`run_cli`) on those compilations (`prepare_cli`, `cli_session`).
 """
 
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 from typing import NamedTuple
 
-import mujoco
 import numpy as np
 
 from evojax_motion.compiler.basis import BasisSettings
 from evojax_motion.model.dynamics import Dynamics, make_dynamics
 from evojax_motion.model.robot import Robot, load_robot
 from evojax_motion.model.robot import mj_inverse_torques as reference_torques
-from evojax_motion.motion.database import Database, DatabaseMeta, make_database
+from evojax_motion.motion.database import Database, DatabaseMeta, make_database, save_database
 from evojax_motion.motion.timegrid import TimeGrid, make_time_grid
-from evojax_motion.online.generation import OnlineSettings, make_online_generator, online_database
+from evojax_motion.online.generation import final_hand, make_online_generator, online_database
+from evojax_motion.settings.online import OnlineSettings
 
 SAMPLES = 32  # T: small for compile time, large enough for the BC algebra (compile_interp)
 N_PRIMITIVES = 60
 BASIS = BasisSettings(radius=0.15, neighbours=8)
 SETTINGS = OnlineSettings()
-
-
-def hand_positions(robot: Robot, q: np.ndarray) -> np.ndarray:
-    """Site positions of postures ``q (n, J)`` by C MuJoCo: ``(n, 3)``."""
-    m = robot.mj_model
-    d = mujoco.MjData(m)
-    out = np.zeros((q.shape[0], 3))
-    for i, qi in enumerate(q):
-        d.qpos[:] = m.qpos0
-        d.qpos[robot.qpos_adr] = qi
-        mujoco.mj_kinematics(m, d)
-        out[i] = d.site_xpos[robot.site_id]
-    return out
 
 
 def synthetic_database(robot: Robot, n: int, samples: int, seed: int) -> Database:
@@ -59,7 +49,7 @@ def synthetic_database(robot: Robot, n: int, samples: int, seed: int) -> Databas
     shape = w**3 * (10.0 - 15.0 * w + 6.0 * w**2)
     q = robot.rest[None, None, :] + (final - robot.rest)[:, None, :] * shape
     duration = rng.uniform(0.5, 0.9, n)
-    return make_database(q, duration, hand_positions(robot, final))
+    return make_database(q, duration, final_hand(robot, final))
 
 
 class Env(NamedTuple):
@@ -88,8 +78,8 @@ def online_env() -> Env:
 
 @functools.cache
 def reach_checker():
-    """The jitted `online.generation.make_reach_checker` of `online_env`."""
-    from evojax_motion.online.generation import make_reach_checker
+    """The jitted `online.reach.make_reach_checker` of `online_env`."""
+    from evojax_motion.online.reach import make_reach_checker
 
     env = online_env()
     return make_reach_checker(env.robot, env.dyn, BASIS, SETTINGS)
@@ -101,7 +91,8 @@ CATCH_KW = {"horizon": 1.2, "samples": 121}  # = the CLI's settings for ``--hori
 @functools.cache
 def catcher():
     """``(settings, jitted catcher)`` of `online_env` (`online.catching.make_catcher`)."""
-    from evojax_motion.online.catching import CatchSettings, make_catcher
+    from evojax_motion.online.catching import make_catcher
+    from evojax_motion.settings.online import CatchSettings
 
     env = online_env()
     catch = CatchSettings(**CATCH_KW)
@@ -130,6 +121,45 @@ def cli_session(env: Env, db_path) -> tuple:
     catch, fn = catcher()
     online_cli._CATCHERS[(id(model), catch)] = fn
     return opened
+
+
+def save_env_database(directory: Path, env: Env) -> Path:
+    """`online_env`'s database written to ``directory/db.npz`` (the CLI's ``--db``)."""
+    path = Path(directory) / "db.npz"
+    save_database(path, env.db, env.meta)
+    return path
+
+
+def prepare_cli(monkeypatch, opened: tuple | None = None) -> tuple | None:
+    """Set up in-process CLI runs for one test: no persistent compilation cache
+    (``EVOJAX_MOTION_JAX_CACHE=off``) and, if given, ``opened`` (e.g. `cli_session`'s) in place
+    of what ``cli.online._session`` would load. Returns ``opened``."""
+    from evojax_motion.cli import online as online_cli
+
+    monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
+    if opened is not None:
+        monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    return opened
+
+
+def run_cli(argv) -> int:
+    """``evojax-motion <argv>`` in-process with the online subcommands (``generate``, ``catch``,
+    ``simulate``); the exit status. A `UserError` prints ``error: <msg>`` on stdout and gives 2."""
+    from evojax_motion.cli.entry import _Parser
+    from evojax_motion.cli.online import add_online_parsers
+    from evojax_motion.cli.simulate import add_simulate_parser
+    from evojax_motion.errors import UserError
+
+    parser = _Parser(prog="evojax-motion")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    add_online_parsers(sub)
+    add_simulate_parser(sub)
+    try:
+        args = parser.parse_args(argv)
+        return int(args.func(args) or 0)
+    except UserError as e:
+        print(f"error: {e}")
+        return 2
 
 
 def query(env: Env, targets, duration=None, q_start=None):

@@ -6,15 +6,23 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from online_support import catcher, cli_session, online_env
+from online_support import (
+    catcher,
+    cli_session,
+    online_env,
+    prepare_cli,
+    run_cli,
+    save_env_database,
+)
 
 from evojax_motion.errors import UserError
 from evojax_motion.online.catching import (
-    CatchSettings,
     ball_flight,
     explain_plan,
     validate_ball,
 )
+from evojax_motion.online.generation import final_hand
+from evojax_motion.settings.online import CatchSettings
 
 TOL_FLIGHT = 1e-4  # m: float32 ballistic positions over 1.5 s (|p| ~ 3 m)
 TOL_DRAG = 1e-4  # m: RK4 (4 substeps of 10 ms) vs SciPy's DOP853 at 1e-10
@@ -122,49 +130,40 @@ def test_ball_validation():
 
 def test_cli_catch(tmp_path, capsys, monkeypatch):
     """``evojax-motion catch`` on the cached compilations (the loader: test_online)."""
-    from test_online import _cli
-
-    from evojax_motion.cli import online as online_cli
-    from evojax_motion.motion.database import save_database
     from evojax_motion.run.export import read_trajectory
 
-    monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
     env = online_env()
-    db = tmp_path / "db.npz"
-    save_database(db, env.db, env.meta)
-    opened = cli_session(env, db)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    db = save_env_database(tmp_path, env)
+    prepare_cli(monkeypatch, cli_session(env, db))
     p0 = np.array([3.0, -0.2, 1.6], np.float32)
     v0 = throw_through(env.db.condition[5], 0.8, p0)
     ball = [f"{x:.6f}" for x in np.r_[p0, v0]]
     out = tmp_path / "catch.npz"
     horizon = ["--horizon", "1.2"]  # the cached catcher's settings
-    assert _cli(["catch", "--db", str(db), "--ball", *ball, "--out", str(out), *horizon]) == 0
+    assert run_cli(["catch", "--db", str(db), "--ball", *ball, "--out", str(out), *horizon]) == 0
     assert "catch at t =" in capsys.readouterr().out
     data = read_trajectory(out)
     assert data.meta["caught"] and data.t[0] >= 0.1 - 1e-6
     # the written hand, by C MuJoCo's kinematics, at the ball (vacuum flight) at the catch time
-    from online_support import hand_positions
-
     t_c = float(data.meta["catch_time"])
     assert abs(float(data.t[-1]) - t_c) <= 1e-4
     ball_at = p0 + v0 * t_c + 0.5 * GRAVITY * t_c**2
-    hand = hand_positions(env.robot, data.q[-1:])[0]
+    hand = final_hand(env.robot, data.q[-1:])[0]
     assert np.linalg.norm(hand - ball_at) <= TOL_CLI_HAND
     tight = tmp_path / "tight.npz"
     argv = ["catch", "--db", str(db), "--ball", *ball, "--out", str(tight), *horizon]
-    assert _cli([*argv, "--tolerance", "1e-6"]) == 2
+    assert run_cli([*argv, "--tolerance", "1e-6"]) == 2
     msg = capsys.readouterr().out
     assert "the hand misses the target" in msg and "at the catch time" in msg and " mm" in msg
     assert not tight.exists()
     far = [f"{x:.6f}" for x in np.r_[3.0, 3.0, 1.6, -4.0, 0.0, 3.0]]
     out2 = tmp_path / "no.csv"
-    assert _cli(["catch", "--db", str(db), "--ball", *far, "--out", str(out2), *horizon]) == 2
+    assert run_cli(["catch", "--db", str(db), "--ball", *far, "--out", str(out2), *horizon]) == 2
     msg = capsys.readouterr().out
     assert msg.startswith("error: the ball cannot be caught") and "--nearest" in msg
     assert not out2.exists()
     argv = ["catch", "--db", str(db), "--ball", *far, "--out", str(out2), *horizon, "--nearest"]
-    assert _cli(argv) == 0
+    assert run_cli(argv) == 0
     msg = capsys.readouterr().out
     assert msg.startswith("note: the ball cannot be caught") and "moving to the reachable" in msg
     assert read_trajectory(out2).q.shape == data.q.shape

@@ -1,5 +1,6 @@
-"""Online generation (online.py, online_cli.py): the query against the compilers it chains, the
-joint-limit projection (property test), reachability, the CLI's files and errors."""
+"""Online generation (online/generation.py, reach.py, limits.py; cli/online.py): the query
+against the compilers it chains, the joint-limit projection (property test), reachability, the
+CLI's files and errors."""
 
 from __future__ import annotations
 
@@ -15,24 +16,24 @@ from hypothesis import strategies as st
 from online_support import (
     BASIS,
     SETTINGS,
+    cli_session,
     mj_inverse_torques,
     online_env,
+    prepare_cli,
     query,
     reach_checker,
+    run_cli,
+    save_env_database,
 )
 
 from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, basis_functions, compile_interpolation
 from evojax_motion.errors import UserError
-from evojax_motion.online.generation import (
-    OnlineSettings,
-    enforce_limits,
-    make_online_generator,
-    minimum_jerk,
-    nearest_reachable,
-    spd_solve,
-    to_numpy,
-)
+from evojax_motion.linalg.cholesky import spd_solve
+from evojax_motion.online.generation import make_online_generator, to_numpy
+from evojax_motion.online.limits import enforce_limits, minimum_jerk
+from evojax_motion.online.reach import nearest_reachable
+from evojax_motion.settings.online import OnlineSettings
 
 TOL_HAND = 1e-3  # m: final hand error of a reachable target (the benchmark asks <= 5 mm p95)
 TOL_Q = 1e-5  # rad: float32 agreement of two evaluations of the same trajectory
@@ -75,7 +76,8 @@ def test_accelerator_path_matches_lapack(env, near, monkeypatch):
     import evojax_motion.compiler.basis as basis_module
     import evojax_motion.compiler.interpolation as interp_module
     from evojax_motion.linalg.precision import exact_matmuls
-    from evojax_motion.online.generation import joint_limits_f32, online_query, to_numpy
+    from evojax_motion.online.generation import online_query, to_numpy
+    from evojax_motion.online.limits import joint_limits_f32
 
     targets, _ = near
     lower, upper = joint_limits_f32(env.robot)
@@ -345,47 +347,19 @@ def test_limit_projection_is_the_minimal_null_space_step():
 # -------------------------------------------------------------------------------------- CLI
 
 
-def _cli(argv):
-    """Run ``evojax-motion <argv>`` in-process with the online subcommands; exit status."""
-    from evojax_motion.cli.entry import _Parser
-    from evojax_motion.cli.online import add_online_parsers
-
-    parser = _Parser(prog="evojax-motion")
-    add_online_parsers(parser.add_subparsers(dest="command", required=True, parser_class=_Parser))
-    try:
-        args = parser.parse_args(argv)
-        return int(args.func(args) or 0)
-    except UserError as e:
-        print(f"error: {e}")
-        return 2
-
-
 @pytest.fixture(scope="module")
 def db_file(tmp_path_factory, env):
-    from evojax_motion.motion.database import save_database
-
-    path = tmp_path_factory.mktemp("online") / "db.npz"
-    save_database(path, env.db, env.meta)
-    return path
-
-
-@pytest.fixture(autouse=True)
-def _no_compile_cache(monkeypatch):
-    monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
+    return save_env_database(tmp_path_factory.mktemp("online"), env)
 
 
 def test_cli_generate_csv_torques_equal_mj_inverse(env, db_file, tmp_path, capsys, monkeypatch):
     """``evojax-motion generate`` on the cached compilations (the loader has its own test)."""
-    from online_support import cli_session
-
-    from evojax_motion.cli import online as online_cli
     from evojax_motion.run.export import read_trajectory
 
-    opened = cli_session(env, db_file)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    prepare_cli(monkeypatch, cli_session(env, db_file))
     target = [f"{v:.4f}" for v in env.db.condition[3] + 0.01]
     out = tmp_path / "traj.csv"
-    assert _cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 0
+    assert run_cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 0
     assert "written to" in capsys.readouterr().out
     data = read_trajectory(out)
     assert data.joint_names == env.robot.joint_names
@@ -393,15 +367,15 @@ def test_cli_generate_csv_torques_equal_mj_inverse(env, db_file, tmp_path, capsy
     np.testing.assert_allclose(data.tau, ref, atol=TOL_TAU)
     assert ((data.q >= env.robot.lower) & (data.q <= env.robot.upper)).all()
     # refuses to overwrite; an unreachable target: one line, distance, exit 2, nothing written
-    assert _cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 2
+    assert run_cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 2
     assert "already exists" in capsys.readouterr().out
     far = tmp_path / "far.json"
     argv = ["generate", "--db", str(db_file), "--target", "1.5", "-0.3", "1.4", "--out", str(far)]
-    assert _cli(argv) == 2
+    assert run_cli(argv) == 2
     msg = capsys.readouterr().out
     assert "outside the reachable region" in msg and "m away" in msg and "--nearest" in msg
     assert not far.exists()
-    assert _cli([*argv, "--nearest"]) == 0
+    assert run_cli([*argv, "--nearest"]) == 0
     assert "using it (--nearest)" in capsys.readouterr().out
     assert "NaN" not in far.read_text() and "nan" not in far.read_text()
 
@@ -445,16 +419,17 @@ def test_cli_parser_shape():
 
 
 @pytest.mark.slow
-def test_cli_generate_end_to_end(env, db_file, tmp_path, capsys):
+def test_cli_generate_end_to_end(env, db_file, tmp_path, capsys, monkeypatch):
     """The real command: loads the file, rebuilds the robot, compiles its own query."""
     from evojax_motion.cli import online as online_cli
     from evojax_motion.run.export import read_trajectory
 
+    prepare_cli(monkeypatch)
     online_cli._session.cache_clear()
     target = [f"{v:.4f}" for v in env.db.condition[7] + 0.005]
     out = tmp_path / "traj.npz"
     argv = ["generate", "--db", str(db_file), "--target", *target, "--duration", "0.8"]
-    assert _cli([*argv, "--out", str(out)]) == 0
+    assert run_cli([*argv, "--out", str(out)]) == 0
     assert "0.800 s" in capsys.readouterr().out
     data = read_trajectory(out)
     np.testing.assert_allclose(data.t[-1], 0.8, rtol=1e-6)

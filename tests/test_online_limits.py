@@ -1,7 +1,7 @@
-"""Velocity and torque limits of online motions (online.py's time scaling, catching.py, the CLI):
-the scaling's search against closed forms, a too-fast motion slowed to the limits and checked by
-C MuJoCo's float64 inverse dynamics, and motions that no allowed duration brings within the
-limits refused with their figures (exit status 2, nothing written)."""
+"""Velocity and torque limits of online motions (the time scaling of online/limits.py,
+catching.py, the CLI): the scaling's search against closed forms, a too-fast motion slowed to the
+limits and checked by C MuJoCo's float64 inverse dynamics, and motions that no allowed duration
+brings within the limits refused with their figures (exit status 2, nothing written)."""
 
 from __future__ import annotations
 
@@ -16,10 +16,15 @@ from online_support import (
     cli_session,
     mj_inverse_torques,
     online_env,
+    prepare_cli,
     query,
+    run_cli,
+    save_env_database,
 )
 
-from evojax_motion.online.generation import TimeLaw, explain_unusable, shortest_duration
+from evojax_motion.online.explain import explain_unusable
+from evojax_motion.online.generation import final_hand
+from evojax_motion.online.limits import TimeLaw, shortest_duration
 
 HEADROOM = SETTINGS.limit_headroom
 TOL_SEARCH = 1e-5  # relative: the scan + 24 bisection steps vs a closed-form shortest duration
@@ -35,16 +40,7 @@ def env():
 
 @pytest.fixture(scope="module")
 def db_file(tmp_path_factory, env):
-    from evojax_motion.motion.database import save_database
-
-    path = tmp_path_factory.mktemp("limits") / "db.npz"
-    save_database(path, env.db, env.meta)
-    return path
-
-
-@pytest.fixture(autouse=True)
-def _no_compile_cache(monkeypatch):
-    monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
+    return save_env_database(tmp_path_factory.mktemp("limits"), env)
 
 
 def _usage(robot, q, qd, qdd) -> float:
@@ -116,17 +112,13 @@ def test_too_fast_motion_is_slowed_to_the_limits(env):
 def test_cli_generate_slows_a_too_fast_motion(env, db_file, tmp_path, capsys, monkeypatch):
     """``generate --duration 0.001`` writes a feasible, slower motion and says so; the CSV's
     comment lines carry the margins."""
-    from test_online import _cli
-
-    from evojax_motion.cli import online as online_cli
     from evojax_motion.run.export import read_trajectory
 
-    opened = cli_session(env, db_file)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    prepare_cli(monkeypatch, cli_session(env, db_file))
     target = [f"{v:.4f}" for v in env.db.condition[3] + 0.01]
     out = tmp_path / "fast.csv"
     argv = ["generate", "--db", str(db_file), "--target", *target, "--duration", "0.001"]
-    assert _cli([*argv, "--out", str(out)]) == 0
+    assert run_cli([*argv, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "stretched from 0.001 s to" in text and "limit margins" in text
     data = read_trajectory(out)
@@ -148,10 +140,9 @@ def test_catch_that_cannot_arrive_in_time_exits_2_with_figures(
     """A planner allowed to rush (speedup 4) picks a catch the limits cannot make in time: the
     motion would have to start before the reaction time. The catch is refused with the time it
     needs, the time it has, and the binding joint's figures; nothing is written."""
-    from test_online import _cli
-
     from evojax_motion.cli import online as online_cli
-    from evojax_motion.online.catching import CatchSettings, make_catcher
+    from evojax_motion.online.catching import make_catcher
+    from evojax_motion.settings.online import CatchSettings
 
     rushed = CatchSettings(**CATCH_KW, speedup=4.0)
     fn = make_catcher(env.robot, env.dyn, env.grid, BASIS, SETTINGS, rushed)
@@ -165,14 +156,13 @@ def test_catch_that_cannot_arrive_in_time_exits_2_with_figures(
     np.testing.assert_allclose(motion.duration[0], available, rtol=1e-6)
     np.testing.assert_allclose(motion.t[0, 0], rushed.reaction_time, atol=1e-5)
 
-    opened = cli_session(env, db_file)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    opened = prepare_cli(monkeypatch, cli_session(env, db_file))
     # the command line's catch settings for --horizon 1.2, served by the rushed planner
     monkeypatch.setitem(online_cli._CATCHERS, (id(opened[0]), CatchSettings(**CATCH_KW)), fn)
     out = tmp_path / "late.csv"
     ball = [f"{x:.6f}" for x in np.r_[p0, v0]]
     argv = ["catch", "--db", str(db_file), "--ball", *ball, "--horizon", "1.2", "--out", str(out)]
-    assert _cli(argv) == 2
+    assert run_cli(argv) == 2
     msg = capsys.readouterr().out
     needed = f"{float(motion.duration_needed[0]):.3f} s"
     assert msg.startswith(f"error: the motion needs {needed} to stay within")
@@ -186,12 +176,10 @@ def test_catch_that_cannot_arrive_in_time_exits_2_with_figures(
 def test_gravity_over_a_torque_limit_has_no_motion(env, db_file, tmp_path, capsys, monkeypatch):
     """A shoulder too weak to hold the raised arm (3 N m against ~10 N m of gravity): no
     duration helps; the refusal names the joint and the torque it needs."""
-    from test_online import _cli
-
-    from evojax_motion.cli import online as online_cli
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.model.robot import robot_from_mjcf_text
-    from evojax_motion.online.generation import MAX_DURATION, OnlineModel, make_online_generator
+    from evojax_motion.online.generation import OnlineModel, make_online_generator
+    from evojax_motion.settings.online import MAX_DURATION
 
     mjcf = env.robot.mjcf.replace(
         'range="-0.872665 2.967060"\n               actuatorfrcrange="-80 80"',
@@ -212,11 +200,10 @@ def test_gravity_over_a_torque_limit_has_no_motion(env, db_file, tmp_path, capsy
     assert why.startswith("no motion within the velocity and torque limits: even in 60.000 s")
 
     model = cli_session(env, db_file)[0]
-    opened = (OnlineModel(**{**model.__dict__, "robot": weak}), gen, None)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    prepare_cli(monkeypatch, (OnlineModel(**{**model.__dict__, "robot": weak}), gen, None))
     out = tmp_path / "weak.npz"
     target = [f"{v:.4f}" for v in targets[0]]
-    assert _cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 2
+    assert run_cli(["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]) == 2
     msg = capsys.readouterr().out
     assert "joint 'shoulder_pitch' needs" in msg and "N m of torque" in msg
     assert "against a limit of 3 N m" in msg and not out.exists()
@@ -228,48 +215,36 @@ TOL_HAND = 5e-3  # [m] the CLI's default --tolerance (5 mm)
 TOL_ROUND = 1e-4  # [m] the written meta rounds coordinates to 0.1 mm
 
 
-def _hand_cli(env, db_file, monkeypatch):
-    from test_online import _cli
-
-    from evojax_motion.cli import online as online_cli
-
-    opened = cli_session(env, db_file)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
-    return _cli
-
-
 def _written_hand(env, path) -> np.ndarray:
     """Where the written final posture puts the hand, by C MuJoCo's mj_kinematics: ``(3,)``."""
-    from online_support import hand_positions
-
     from evojax_motion.run.export import read_trajectory
 
-    return hand_positions(env.robot, read_trajectory(path).q[-1:])[0]
+    return final_hand(env.robot, read_trajectory(path).q[-1:])[0]
 
 
 def test_generate_normal_target_ends_within_tolerance(env, db_file, tmp_path, monkeypatch):
-    cli = _hand_cli(env, db_file, monkeypatch)
+    prepare_cli(monkeypatch, cli_session(env, db_file))
     target = np.asarray(env.db.condition[5], np.float64) + 0.01
     out = tmp_path / "near.json"
     argv = ["generate", "--db", str(db_file), "--target", *map(str, target), "--out", str(out)]
-    assert cli(argv) == 0
+    assert run_cli(argv) == 0
     assert np.linalg.norm(_written_hand(env, out) - target) <= TOL_HAND
 
 
 def test_generate_unreachable_target_exits_2_with_the_miss(
     env, db_file, tmp_path, capsys, monkeypatch
 ):
-    cli = _hand_cli(env, db_file, monkeypatch)
+    prepare_cli(monkeypatch, cli_session(env, db_file))
     out = tmp_path / "far.json"
     argv = ["generate", "--db", str(db_file), "--target", "1.5", "-0.3", "1.4", "--out", str(out)]
     capsys.readouterr()
-    assert cli(argv) == 2
+    assert run_cli(argv) == 2
     msg = capsys.readouterr().out
     assert msg.startswith("error: ") and msg.count("\n") == 1
     assert "would miss it by" in msg and " mm" in msg and "nearest reachable point" in msg
     assert not out.exists()
     # --nearest: a motion whose hand ends within the tolerance of the reported nearest point
-    assert cli([*argv, "--nearest"]) == 0
+    assert run_cli([*argv, "--nearest"]) == 0
     printed = capsys.readouterr().out
     assert "using it (--nearest)" in printed
     from evojax_motion.run.export import read_trajectory
@@ -281,16 +256,16 @@ def test_generate_unreachable_target_exits_2_with_the_miss(
 
 def test_generate_miss_over_tolerance_exits_2(env, db_file, tmp_path, capsys, monkeypatch):
     """A reachable target still misses a tolerance below the motion's own miss: exit 2."""
-    cli = _hand_cli(env, db_file, monkeypatch)
+    prepare_cli(monkeypatch, cli_session(env, db_file))
     target = [f"{v:.4f}" for v in env.db.condition[5] + 0.01]
     out = tmp_path / "tight.csv"
     argv = ["generate", "--db", str(db_file), "--target", *target, "--out", str(out)]
     capsys.readouterr()
-    assert cli([*argv, "--tolerance", "1e-6"]) == 2
+    assert run_cli([*argv, "--tolerance", "1e-6"]) == 2
     msg = capsys.readouterr().out
     assert "the hand misses the target" in msg and "tolerance 1e-06 mm" in msg
     assert not out.exists()
-    assert cli([*argv, "--tolerance", "0"]) == 2
+    assert run_cli([*argv, "--tolerance", "0"]) == 2
     assert "--tolerance: expected a number > 0 [mm]" in capsys.readouterr().out
 
 
@@ -299,8 +274,6 @@ def test_projection_that_moves_the_hand_off_target_is_an_error(env, db_file, tmp
     with the figures, not a note."""
     import argparse
 
-    from online_support import hand_positions
-
     from evojax_motion.cli import online as online_cli
 
     model = cli_session(env, db_file)[0]
@@ -308,7 +281,7 @@ def test_projection_that_moves_the_hand_off_target_is_an_error(env, db_file, tmp
     # move the written final posture until the hand is ~0.3 m off the target
     q = np.array(motion.q)
     q[0, -1] = np.clip(q[0, -1] + 0.6, env.robot.lower, env.robot.upper)
-    miss = np.linalg.norm(hand_positions(env.robot, q[0, -1:])[0] - motion.target[0])
+    miss = np.linalg.norm(final_hand(env.robot, q[0, -1:])[0] - motion.target[0])
     assert miss > 0.05
     bad = motion._replace(q=q, limit_excess=np.array([71.4], np.float32))
     out = tmp_path / "bad.csv"

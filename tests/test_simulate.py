@@ -1,4 +1,4 @@
-"""Physics rollouts (simulate.py, simulate_cli.py): the reference against the plan, the
+"""Physics rollouts (online/simulate.py, cli/simulate.py): the reference against the plan, the
 simulation model and the ball's flight against closed forms, tracking of a feasible plan, a plan
 beyond the torque limits, a simulated catch that succeeds and the same plan started late that
 fails, and the ``simulate`` command's files and refusals."""
@@ -12,17 +12,26 @@ import jax
 import mujoco
 import numpy as np
 import pytest
-from online_support import catcher, cli_session, mj_inverse_torques, online_env, query
+from online_support import (
+    catcher,
+    cli_session,
+    mj_inverse_torques,
+    online_env,
+    prepare_cli,
+    query,
+    run_cli,
+    save_env_database,
+)
 
 from evojax_motion.online.simulate import (
     Ball,
     Plan,
-    SimSettings,
     reference,
     simulate,
     simulation_model,
     summarise,
 )
+from evojax_motion.settings.online import SimSettings
 
 SETTINGS = SimSettings()
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -158,27 +167,7 @@ def test_settings_validation():
 
 @pytest.fixture(scope="module")
 def db_file(tmp_path_factory, env):
-    from evojax_motion.motion.database import save_database
-
-    path = tmp_path_factory.mktemp("simulate") / "db.npz"
-    save_database(path, env.db, env.meta)
-    return path
-
-
-def _cli(argv):
-    """``evojax-motion <argv>`` in-process with the ``simulate`` subcommand; exit status."""
-    from evojax_motion.cli.entry import _Parser
-    from evojax_motion.cli.simulate import add_simulate_parser
-    from evojax_motion.errors import UserError
-
-    parser = _Parser(prog="evojax-motion")
-    add_simulate_parser(parser.add_subparsers(dest="command", required=True, parser_class=_Parser))
-    try:
-        args = parser.parse_args(argv)
-        return int(args.func(args) or 0)
-    except UserError as e:
-        print(f"error: {e}")
-        return 2
+    return save_env_database(tmp_path_factory.mktemp("simulate"), env)
 
 
 def test_cli_simulate(env, throw, db_file, tmp_path, capsys, monkeypatch):
@@ -186,16 +175,12 @@ def test_cli_simulate(env, throw, db_file, tmp_path, capsys, monkeypatch):
     input is one line, exit 2, nothing written."""
     from PIL import Image
 
-    from evojax_motion.cli import online as online_cli
-
-    monkeypatch.setenv("EVOJAX_MOTION_JAX_CACHE", "off")
-    opened = cli_session(env, db_file)
-    monkeypatch.setattr(online_cli, "_session", lambda *args: opened)
+    prepare_cli(monkeypatch, cli_session(env, db_file))
     ball, plan, _ = throw
     args = ["simulate", "--db", str(db_file), "--horizon", "1.2", "--renderer", "stick"]
     args += ["--ball", *(f"{x:.6f}" for x in np.r_[ball.p0, ball.v0])]
     out = tmp_path / "sim"
-    assert _cli([*args, "--out", str(out)]) == 0
+    assert run_cli([*args, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "caught" in text and "yes, at t =" in text and "tracking error" in text
     doc = json.loads((out / "simulation.json").read_text())
@@ -213,9 +198,9 @@ def test_cli_simulate(env, throw, db_file, tmp_path, capsys, monkeypatch):
             shown += gif.info["duration"]
     assert gif.n_frames > frames // 2 and shown == frames * round(1000 / SETTINGS.fps)
 
-    assert _cli([*args, "--out", str(out)]) == 2  # refuses to overwrite
+    assert run_cli([*args, "--out", str(out)]) == 2  # refuses to overwrite
     assert "already holds simulation.json" in capsys.readouterr().out
-    assert _cli([*args, "--delay", "0.3"]) == 0
+    assert run_cli([*args, "--delay", "0.3"]) == 0
     text = capsys.readouterr().out
     assert re.search(r"^caught +no \(closest \d+\.\d mm", text, re.MULTILINE)
     assert "started 0.300 s late" in text
@@ -225,9 +210,9 @@ def test_cli_simulate(env, throw, db_file, tmp_path, capsys, monkeypatch):
         (["--delay", "-1"], "--delay: expected"),
         (["--duration", "0.5"], "--duration: only with --target"),
     ):
-        assert _cli([*args, *extra, "--out", str(bad)]) == 2
+        assert run_cli([*args, *extra, "--out", str(bad)]) == 2
         assert why in capsys.readouterr().out
     far = ["simulate", "--db", str(db_file), "--target", "1.5", "-0.3", "1.4", "--out", str(bad)]
-    assert _cli(far) == 2
+    assert run_cli(far) == 2
     assert "outside the reachable region" in capsys.readouterr().out
     assert not bad.exists()

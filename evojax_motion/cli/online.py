@@ -133,7 +133,7 @@ def _print_table(rows: dict) -> None:
 
 
 def _write(args, fmt, model, motion, i: int, meta: dict, window: str = "") -> Path:
-    from evojax_motion.online.generation import explain_unusable
+    from evojax_motion.online.explain import explain_unusable
     from evojax_motion.run.export import make_trajectory_data, write_trajectory
 
     missed = _miss_line(model, motion, i, _tolerance(args))
@@ -155,7 +155,7 @@ def _write(args, fmt, model, motion, i: int, meta: dict, window: str = "") -> Pa
 
 
 def _motion_meta(model, motion, i: int) -> dict:
-    from evojax_motion.online.generation import limit_meta
+    from evojax_motion.online.explain import limit_meta
 
     return {
         "database": model.source,
@@ -183,11 +183,8 @@ def _limits_line(motion, i: int) -> str:
 def _session(path: str, mtime_ns: int, backend: str):
     """The loaded model and its jitted functions, kept per database file and version: repeated
     commands in one process (tests, notebooks) do not recompile."""
-    from evojax_motion.online.generation import (
-        load_online_model,
-        make_online_generator,
-        make_reach_checker,
-    )
+    from evojax_motion.online.generation import load_online_model, make_online_generator
+    from evojax_motion.online.reach import make_reach_checker
 
     model = load_online_model(path, backend=backend)
     args = (model.robot, model.dyn, model.basis_settings, model.settings)
@@ -216,7 +213,8 @@ def _generate_one(opened, target, duration, q_start):
 
 def cmd_generate(args) -> int:
     """``evojax-motion generate``: one motion to ``--target``; exit 0, or `UserError`."""
-    from evojax_motion.online.generation import describe_limits, nearest_reachable
+    from evojax_motion.online.explain import describe_limits
+    from evojax_motion.online.reach import nearest_reachable
 
     fmt = _check_out(args)
     from evojax_motion.run.cache import enable_compile_cache
@@ -272,7 +270,7 @@ def cmd_generate(args) -> int:
 def _catch_settings(args):
     import dataclasses
 
-    from evojax_motion.online.catching import CatchSettings
+    from evojax_motion.settings.online import CatchSettings
 
     for flag, value in (("--drag", args.drag), ("--reaction", args.reaction)):
         if value is not None and not np.isfinite(value):
@@ -296,7 +294,8 @@ def cmd_catch(args) -> int:
     import jax
 
     from evojax_motion.online.catching import explain_plan, validate_ball
-    from evojax_motion.online.generation import describe_limits, nearest_reachable
+    from evojax_motion.online.explain import describe_limits
+    from evojax_motion.online.reach import nearest_reachable
 
     fmt = _check_out(args)
     p0, v0 = validate_ball(args.ball)
@@ -380,7 +379,7 @@ def _nearest_attempt(opened, catch, plan):
     ``time_short`` late). Out of reach: to the reachable point nearest the ball's closest
     approach, timed to arrive then if possible. Returns ``(motion, note)``.
     """
-    from evojax_motion.online.generation import nearest_reachable
+    from evojax_motion.online.reach import nearest_reachable
 
     model, _, check = opened
     if bool(plan.passes_region[0]):
@@ -414,7 +413,7 @@ def _retimed(opened, point, end: float, like):
 
 def _natural_duration(check, model, point) -> float:
     """The natural (neighbours' mean) duration at ``point (3,)`` [s]."""
-    from evojax_motion.online.generation import check_points
+    from evojax_motion.online.reach import check_points
 
     reach = check_points(check, model.db_device, np.asarray(point, np.float32)[None], 64)
     return float(reach.natural_duration[0])

@@ -80,7 +80,7 @@ def _check_args(args) -> Path | None:
 def _plan_target(args, opened):
     """The motion to ``--target``: ``(motion, description)`` (numpy `OnlineResult`)."""
     from evojax_motion.cli.online import _generate_one, _vec
-    from evojax_motion.online.generation import explain_unusable
+    from evojax_motion.online.explain import explain_unusable
 
     model = opened[0]
     target = np.asarray(args.target, np.float32)
@@ -101,7 +101,7 @@ def _plan_catch(args, opened):
 
     from evojax_motion.cli.online import _catch_settings, _catcher, _vec
     from evojax_motion.online.catching import explain_plan, validate_ball
-    from evojax_motion.online.generation import explain_unusable
+    from evojax_motion.online.explain import explain_unusable
     from evojax_motion.online.simulate import Ball
 
     model = opened[0]
@@ -160,10 +160,11 @@ def _animate(args, robot, rollout, settings, out: Path) -> str:
 def cmd_simulate(args) -> int:
     """``evojax-motion simulate``: plan, execute in MuJoCo, report; exit 0, or `UserError`."""
     from evojax_motion.cli.online import _open, _print_table
-    from evojax_motion.online.generation import describe_limits
-    from evojax_motion.online.simulate import Plan, SimSettings, simulate, summarise
+    from evojax_motion.online.explain import describe_limits
+    from evojax_motion.online.simulate import Plan, simulate, summarise
     from evojax_motion.report.render import RenderUnavailable
     from evojax_motion.run.cache import enable_compile_cache
+    from evojax_motion.settings.online import SimSettings
 
     out = _check_args(args)
     enable_compile_cache()
@@ -226,7 +227,7 @@ def _result_document(model, motion, about, args, settings, rollout, summary, ren
     """What ``simulation.json`` holds."""
     import mujoco
 
-    from evojax_motion.online.generation import limit_meta
+    from evojax_motion.online.explain import limit_meta
     from evojax_motion.online.simulate import simulation_model
 
     sim = simulation_model(model.robot, settings, None)

@@ -11,7 +11,7 @@ tennis ball ~0.01), integrated by RK4; without drag the closed form. The flight 
 (z < 0).
 
 Catch point. A sample ``(t_i, p_i)`` can be the catch when
-  - ``p_i`` is reachable (`online.generation.Reach`: inside the learned region and reached by the
+  - ``p_i`` is reachable (`online.reach.Reach`: inside the learned region and reached by the
   IK), and
   - the hand can get there in time: the motion starts after the ``reaction_time`` and may be at
     most ``speedup`` times faster than the natural (the neighbours' mean) duration ``D_nat``:
@@ -31,7 +31,6 @@ ball's path to the reachable region and the time missing.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -39,56 +38,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_motion.compiler.basis import BasisSettings
-from evojax_motion.errors import UserError, check_setting
+from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import Database
 from evojax_motion.motion.timegrid import TimeGrid
-from evojax_motion.online.generation import (
-    OnlineResult,
-    OnlineSettings,
-    build_problem,
-    finish_motion,
-    joint_limits_f32,
-    reach_query,
-    resolve_settings,
-)
-
-
-@dataclass(frozen=True)
-class CatchSettings:
-    """How a catch is planned (static under jit).
-
-    - ``horizon`` [s], ``samples``: the ball's flight examined at ``samples`` instants in
-      ``[0, horizon]`` (default every 10 ms for 1.5 s).
-    - ``drag`` [1/m]: quadratic drag coefficient k (0: vacuum). ``substeps``: RK4 steps per sample.
-    - ``reaction_time`` [s]: from release until the arm may start moving.
-    - ``speedup``: the arm may move at most this many times faster than its natural duration.
-    - ``time_scale`` [s], ``space_scale`` [m]: weights of the time margin and of the depth inside
-      the learned region when choosing the catch point.
-    """
-
-    horizon: float = 1.5
-    samples: int = 151
-    drag: float = 0.0
-    substeps: int = 4
-    reaction_time: float = 0.1
-    speedup: float = 1.5
-    time_scale: float = 0.05
-    space_scale: float = 0.03
-
-    def __post_init__(self):
-        check_setting(0 < self.horizon <= 10, "horizon", "a number in (0, 10] [s]", self.horizon)
-        check_setting(self.samples >= 2, "samples", "an integer >= 2", self.samples)
-        check_setting(0 <= self.drag < 1, "drag", "a number in [0, 1) [1/m]", self.drag)
-        check_setting(self.substeps >= 1, "substeps", "an integer >= 1", self.substeps)
-        check_setting(
-            self.reaction_time >= 0, "reaction_time", "a number >= 0 [s]", self.reaction_time
-        )
-        check_setting(self.speedup >= 1, "speedup", "a number >= 1", self.speedup)
-        check_setting(self.time_scale > 0, "time_scale", "a number > 0 [s]", self.time_scale)
-        check_setting(self.space_scale > 0, "space_scale", "a number > 0 [m]", self.space_scale)
+from evojax_motion.online.generation import OnlineResult, build_problem, finish_motion
+from evojax_motion.online.limits import joint_limits_f32
+from evojax_motion.online.reach import reach_query, resolve_settings
+from evojax_motion.settings.online import CatchSettings, OnlineSettings
 
 
 class CatchPlan(NamedTuple):

@@ -12,48 +12,19 @@ target hand position ``p*`` (optionally a duration D and a start posture q0):
    basis with ``q(0) = q0``, ``q(1) = qf``, ``qd(0) = qd(1) = 0`` and D = the neighbours' mean
    duration unless given;
 4. joint limits (the paper's open problem, sec. 5: "some motions ... violated some of the joint
-   limits"): see below;
+   limits"): `limits.enforce_limits`;
 5. ``qd, qdd`` from the time grid and ``tau`` by inverse dynamics (eq. 4), the eq. 5 cost;
-6. velocity and torque limits by time scaling: see below.
+6. velocity and torque limits by time scaling: `limits.shortest_duration`.
 
 Everything is one jitted function over any number of targets (`make_online_generator`; pieces:
-`reach_query` = steps 1-2, `build_problem` + `finish_motion` = steps 1-5). Outside the learned
+`reach.reach_query` = steps 1-2, `build_problem` + `finish_motion` = steps 1-5). Outside the learned
 region (fewer than ``min_neighbours`` primitives within the radius) or out of the IK's reach a
-target is flagged, with its distance; `nearest_reachable` finds a reachable point near it.
+target is flagged, with its distance; `reach.nearest_reachable` finds a reachable point near it.
 Float32 matrix products are traced at full precision (`exact_matmuls`): GPUs default to TF32.
 
-Joint limits. Per joint the BC system of eq. 2 is ``A x = b`` in the coefficients of eq. 1; with
-``K_lim`` components (default 4, the optimisation compiler's basis) its solutions are
-``x = x_ls + N z`` (``compiler.interpolation.solve_boundary``: ``N`` spans the null space, in prior
-units
-of the neighbours' spread). Any z keeps the BCs, so limits are enforced by the smallest such z:
-
-    min_z 0.5 |z|^2 + 0.5 rho sum_t [relu(q_t - hi_t)^2 + relu(lo_t - q_t)^2],  q = q_eq1 + G z
-
-(``G = basis functions @ N``, ``(T, K_lim)``), a convex piecewise quadratic solved by a few
-semi-smooth Newton steps (each a ``K_lim x K_lim`` solve). The bounds ``lo_t, hi_t`` sit
-``limit_margin`` inside the limits, relaxed toward the safe path below near the ends (where the
-null directions vanish). The penalty leaves a violation of ~1e-4 of the original one, absorbed
-by the margin. A guarantee on top: a joint still outside after that is blended toward the
-minimum-jerk path ``q0 -> qf`` (inside the limits whenever q0 and qf are, and with the same
-rest-to-rest BCs), ``q = (1 - lam) q + lam q_mj`` with the smallest ``lam in [0, 1]`` that brings
-every sample inside (closed form). So an online motion never leaves ``[lower, upper]``.
-
-Velocity and torque limits (``Robot.velocity_limit``, ``Robot.torque_limit``; inf: none). The
-path ``q(s)`` on normalised time does not depend on the duration D (the BCs are rest to rest), so
-a motion over a limit is slowed down, never reshaped. With ``w = 1 / D`` the velocities are
-``q'(s) w`` and the torques of MuJoCo's inverse dynamics a polynomial ``tau = c0 + c1 w + c2 w^2``
-(gravity and springs; damping; inertia, Coriolis and armature), whose coefficients three inverse
-dynamics evaluations give exactly (`time_law`). `shortest_duration` finds the smallest D >= the
-asked one with every ``|qd| <= (1 - h) v_max`` and ``|tau| <= (1 - h) tau_max`` (``h =
-limit_headroom``, the authority left to a feedback controller): a log-spaced scan up to
-`MAX_DURATION`, then bisection between the last infeasible and the first feasible duration
-(feasibility is monotone in D without damping; the scan guards the rest). A motion is usable
-(``ok``) only when that D fits the time allowed (`MAX_DURATION`; for a catch, until the ball
-arrives) and its velocities and torques at that D (the polynomial: the inverse dynamics there,
-up to rounding) are within the full limits.
-Otherwise the result says which limit binds: joint, value needed, at what time (``worst_*``);
-e.g. gravity alone over a torque limit fails at any D.
+The joint limits (step 4) and the time scaling within the velocity and torque limits (step 6)
+are explained in `limits`; what a user is told about a motion's limits, in `explain`. The
+query's settings: `settings.online.OnlineSettings`.
 """
 
 from __future__ import annotations
@@ -68,97 +39,30 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compiler.basis import BasisSettings, pca_basis
 from evojax_motion.compiler.interpolation import (
     Boundary,
-    basis_functions,
     boundary_residual,
     compile_interpolation,
-    solve_boundary,
 )
-from evojax_motion.errors import UserError, check_setting
-from evojax_motion.linalg.cholesky import spd_solve
+from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
-from evojax_motion.model.ik import solve_ik
 from evojax_motion.model.robot import Robot
-from evojax_motion.motion.database import EVOLVED, Database
+from evojax_motion.motion.database import Database
 from evojax_motion.motion.objective import cost_from_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
-
-
-@dataclass(frozen=True)
-class OnlineSettings:
-    """Settings of the online query (static under jit).
-
-    - ``n_components``: principal components of the interpolation (paper eq. 1: 3).
-    - ``limit_components``: components whose BC null space the limit projection moves in (>=
-      ``n_components``; 4 = the optimisation compiler's eq. 3 basis).
-    - ``min_neighbours``: a target is inside the learned region when at least this many valid
-      primitives lie within ``BasisSettings.radius`` of it (<= ``BasisSettings.neighbours``).
-    - ``prefer_evolved``: take the neighbours among the evolved (robot-optimised) primitives when
-      at least ``min_neighbours`` of them lie within the radius, else among all valid ones. The
-      human originals stay in the database for the evolution's sake (sec. 4.3); online, a basis
-      mixing them in pulls the motion back toward the human's torques (benchmarks/online_quality:
-      median eq. 5 cost 9.4 with all entries, 6.1 with evolved ones, paper setting).
-    - ``ik_iters``: IK iterations (started from the nearest neighbour's final posture; on the
-      paper-setting database 8 already reach the final accuracy, p95 6e-5 m).
-    - ``reach_tolerance`` [m]: a target whose IK posture misses it by more is unreachable.
-    - ``limit_margin`` [rad]: the limit projection aims this far inside the joint limits.
-    - ``projection_iters``: semi-smooth Newton steps of the limit projection.
-    - ``penalty``: weight of a limit violation relative to the null-space step (scale-free).
-    - ``limit_headroom``: fraction of every velocity and torque limit that time scaling keeps
-      free (for a tracking controller's feedback; docs/simulation.md): motions are planned
-      within ``(1 - limit_headroom)`` times the limits.
-    - ``scaling_scan``, ``scaling_iters``: durations scanned (log-spaced up to `MAX_DURATION`)
-      and bisection steps of the time scaling.
-    """
-
-    n_components: int = 3
-    limit_components: int = 4
-    min_neighbours: int = 4
-    prefer_evolved: bool = True
-    ik_iters: int = 10
-    reach_tolerance: float = 1e-3
-    limit_margin: float = 2e-3
-    projection_iters: int = 8
-    penalty: float = 1e4
-    limit_headroom: float = 0.05
-    scaling_scan: int = 32
-    scaling_iters: int = 24
-
-    def __post_init__(self):
-        check_setting(self.n_components >= 1, "n_components", "an integer >= 1", self.n_components)
-        check_setting(
-            self.limit_components >= self.n_components,
-            "limit_components",
-            f"an integer >= n_components ({self.n_components})",
-            self.limit_components,
-        )
-        check_setting(
-            self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours
-        )
-        check_setting(self.ik_iters >= 1, "ik_iters", "an integer >= 1", self.ik_iters)
-        check_setting(
-            self.reach_tolerance > 0, "reach_tolerance", "a number > 0 [m]", self.reach_tolerance
-        )
-        check_setting(
-            self.limit_margin >= 0, "limit_margin", "a number >= 0 [rad]", self.limit_margin
-        )
-        check_setting(
-            self.projection_iters >= 0, "projection_iters", "an integer >= 0", self.projection_iters
-        )
-        check_setting(self.penalty > 0, "penalty", "a number > 0", self.penalty)
-        check_setting(
-            0 <= self.limit_headroom < 1,
-            "limit_headroom",
-            "a number in [0, 1)",
-            self.limit_headroom,
-        )
-        check_setting(self.scaling_scan >= 2, "scaling_scan", "an integer >= 2", self.scaling_scan)
-        check_setting(
-            self.scaling_iters >= 0, "scaling_iters", "an integer >= 0", self.scaling_iters
-        )
+from evojax_motion.online.limits import (
+    VELOCITY,
+    enforce_limits,
+    joint_limits_f32,
+    peak_margin,
+    shortest_duration,
+    time_law,
+    usable_limits,
+)
+from evojax_motion.online.reach import Reach, reach_query, resolve_settings
+from evojax_motion.settings.online import MAX_DURATION, OnlineSettings
 
 
 class OnlineResult(NamedTuple):
@@ -212,291 +116,6 @@ class OnlineResult(NamedTuple):
     worst_time: jnp.ndarray
     reachable: jnp.ndarray
     ok: jnp.ndarray
-
-
-class Reach(NamedTuple):
-    """Whether points can be targets: the learned region and the kinematics. All ``(P,)``.
-
-    depth: ``radius - d_m`` [m], d_m the distance to the ``min_neighbours``-th nearest valid
-    condition: >= 0 inside the learned region; region_gap: ``max(-depth, 0)`` [m] (inf when the
-    database has too few valid entries); ik_error: the human-like IK's miss [m];
-    q_final: (P, J) its posture [rad]; hand: (P, 3) where it puts the hand [m];
-    natural_duration: the neighbours' mean duration [s]; n_inside: valid primitives within the
-    radius; reachable: region_gap == 0 and ik_error <= ``reach_tolerance``.
-    """
-
-    depth: jnp.ndarray
-    region_gap: jnp.ndarray
-    ik_error: jnp.ndarray
-    q_final: jnp.ndarray
-    hand: jnp.ndarray
-    natural_duration: jnp.ndarray
-    n_inside: jnp.ndarray
-    reachable: jnp.ndarray
-
-
-def _masked_mean(x, mask):
-    """Mean of ``x (C, k, ...)`` over the rows where ``mask (C, k)``."""
-    w = mask.astype(x.dtype).reshape(mask.shape + (1,) * (x.ndim - 2))
-    return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
-
-
-def reach_query(
-    dyn: Dynamics,
-    db: Database,
-    points,
-    lower,
-    upper,
-    basis_settings: BasisSettings,
-    settings: OnlineSettings,
-):
-    """Steps 1-2 for ``points (P, 3)``: neighbours and the final posture. Pure, jittable.
-
-    ``db`` needs ``q (N, T, J)``, ``duration``, ``condition``, ``valid``. Returns
-    ``(Reach, Neighbours)``.
-    """
-    q_db = jnp.asarray(db.q)
-    points = jnp.asarray(points, q_db.dtype)
-    cond, valid = jnp.asarray(db.condition, q_db.dtype), jnp.asarray(db.valid)
-    select = functools.partial(
-        select_neighbours,
-        k=basis_settings.neighbours,
-        radius=basis_settings.radius,
-        w_pos=basis_settings.w_pos,
-    )
-    region = select(cond, valid, points)  # the learned region: every valid primitive counts
-    nb = region
-    if settings.prefer_evolved:
-        evolved = select(cond, valid & (jnp.asarray(db.origin) == EVOLVED), points)
-        use = evolved.n_inside >= settings.min_neighbours  # (P,)
-        nb = jax.tree_util.tree_map(
-            lambda e, a: jnp.where(use.reshape(use.shape + (1,) * (e.ndim - 1)), e, a),
-            evolved,
-            region,
-        )
-    final = q_db[nb.index, -1]  # (P, k, J) the neighbours' final postures
-    ik = solve_ik(
-        dyn,
-        points,
-        final[:, 0],
-        lower,
-        upper,
-        q_pref=_masked_mean(final, nb.mask),
-        iters=settings.ik_iters,
-        tol=settings.reach_tolerance,
-    )
-    # The learned region: >= min_neighbours primitives within the radius. d_m is 1-Lipschitz in
-    # the point, so the gap is a lower bound of the distance to the region (exact near a cluster).
-    kth = region.distance[:, settings.min_neighbours - 1] / basis_settings.w_pos
-    depth = jnp.where(jnp.isfinite(kth), basis_settings.radius - kth, -jnp.inf)
-    gap = jnp.maximum(-depth, 0.0)
-    dur = _masked_mean(jnp.asarray(db.duration, q_db.dtype)[nb.index], nb.mask)
-    reach = Reach(
-        depth=depth,
-        region_gap=gap,
-        ik_error=ik.pos_error,
-        q_final=ik.q,
-        hand=jax.vmap(lambda q: dyn.site_pose(q)[0])(ik.q),
-        natural_duration=jnp.where(jnp.any(nb.mask, axis=1), dur, jnp.nan),
-        n_inside=region.n_inside,
-        reachable=(gap <= 0.0) & (ik.pos_error <= settings.reach_tolerance),
-    )
-    return reach, nb
-
-
-def make_reach_checker(
-    robot: Robot,
-    dyn: Dynamics,
-    basis_settings: BasisSettings | None = None,
-    settings: OnlineSettings | None = None,
-) -> Callable:
-    """Jitted ``check(db, points (P, 3)) -> Reach``: cheap (no PCA, no dynamics)."""
-    basis_settings, settings = resolve_settings(basis_settings, settings)
-    lower, upper = joint_limits_f32(robot)
-
-    @jax.jit
-    @exact_matmuls
-    def check(db, points):
-        return reach_query(dyn, db, points, lower, upper, basis_settings, settings)[0]
-
-    return check
-
-
-def minimum_jerk(grid: TimeGrid, q0, qf) -> jnp.ndarray:
-    """Rest-to-rest minimum-jerk paths ``q0 (C, J) -> qf (C, J)``: ``(C, T, J)``.
-
-    Monotone between q0 and qf, so inside any box that holds both ends.
-    """
-    s = jnp.asarray(grid.s, q0.dtype)
-    shape = s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
-    return q0[:, None, :] + (qf - q0)[:, None, :] * shape[None, :, None]
-
-
-def _joint_projection(a, g, lo, hi, iters: int, penalty: float):
-    """Smallest null-space step that brings one joint inside ``[lo_t, hi_t]``.
-
-    ``a (T,)`` trajectory, ``g (T, n)`` null-space directions, ``lo, hi (T,)``. -> ``(T,)``.
-    """
-    n = g.shape[1]
-    # Scale-free penalty: relative to the directions' size, so one setting fits every joint.
-    rho = penalty / jnp.maximum(jnp.mean(jnp.sum(g * g, axis=0)), 1e-12)
-    eye = jnp.eye(n, dtype=a.dtype)
-
-    def step(_, z):
-        x = a + g @ z
-        up, dn = x > hi, x < lo
-        bound = jnp.where(up, hi, jnp.where(dn, lo, 0.0))
-        ga = jnp.where((up | dn)[:, None], g, 0.0)
-        h = eye + rho * ga.T @ ga
-        return spd_solve(h, rho * ga.T @ (bound - a))
-
-    z = jax.lax.fori_loop(0, iters, step, jnp.zeros(n, a.dtype))
-    return a + g @ z
-
-
-def _blend_inside(a, safe, lower, upper):
-    """Smallest ``lam`` per joint with ``(1 - lam) a + lam safe`` inside the limits; applied.
-
-    ``a, safe (T, J)``, ``safe`` inside ``[lower, upper] (J,)``. -> ``(T, J)``, ``lam (J,)``.
-    """
-    over = jnp.where(a > upper, (a - upper) / jnp.maximum(a - safe, 1e-12), 0.0)
-    under = jnp.where(a < lower, (lower - a) / jnp.maximum(safe - a, 1e-12), 0.0)
-    lam = jnp.clip(jnp.max(jnp.maximum(over, under), axis=0), 0.0, 1.0)
-    q = (1.0 - lam) * a + lam * safe
-    return jnp.clip(q, lower, upper), lam  # clip only removes rounding (<= 1 ulp)
-
-
-def enforce_limits(
-    basis,
-    boundary: Boundary,
-    grid: TimeGrid,
-    q,
-    lower,
-    upper,
-    settings: OnlineSettings,
-):
-    """Step 4: ``q (C, T, J)`` moved inside ``[lower, upper] (J,)`` keeping the BCs (see module).
-
-    ``basis`` must hold ``settings.limit_components`` components. Returns ``(q (C, T, J),
-    limit_excess (C,), fallback (C,))``: the largest violation of the input and whether the
-    minimum-jerk blend was needed.
-    """
-    excess = jnp.max(jnp.maximum(q - upper, lower - q), axis=(1, 2))
-    outside = jnp.any((q > upper) | (q < lower), axis=1, keepdims=True)  # (C, 1, J)
-    proj = functools.partial(
-        _joint_projection, iters=settings.projection_iters, penalty=settings.penalty
-    )
-    per_joint = jax.vmap(proj, in_axes=(1, 0, 1, 1), out_axes=1)  # over J
-
-    def project(q):
-        k = settings.limit_components
-        sol = solve_boundary(basis, boundary, grid, k)
-        funcs = basis_functions(basis, k)  # (C, J, K+1, T)
-        g = jnp.einsum("cjnt,cjnm->cjtm", funcs, sol.null)  # (C, J, T, K) null directions
-        safe = minimum_jerk(grid, boundary.q0, boundary.qf)
-        # Near the ends the null directions vanish: never ask for more than the safe path has.
-        lo = jnp.minimum(lower + settings.limit_margin, safe)
-        hi = jnp.maximum(upper - settings.limit_margin, safe)
-        # Only joints that were outside move: an inside joint keeps its eq. 1 trajectory.
-        q = jnp.where(outside, jax.vmap(per_joint)(q, g, lo, hi), q)
-        q, lam = jax.vmap(_blend_inside, in_axes=(0, 0, None, None))(q, safe, lower, upper)
-        return q, jnp.any(lam > 0, axis=1)
-
-    # Most motions are inside already: skip the work (a select, not a branch, under vmap).
-    q, fallback = jax.lax.cond(
-        jnp.any(outside), project, lambda q: (q, jnp.zeros(q.shape[0], bool)), q
-    )
-    return q, jnp.maximum(excess, 0.0), fallback
-
-
-MAX_DURATION = 60.0  # [s] the longest motion a query may ask for or be stretched to
-TORQUE, VELOCITY = 0, 1  # `OnlineResult.worst_kind`
-
-
-class TimeLaw(NamedTuple):
-    """Torques and velocities of paths ``q(s)`` as functions of ``w = 1 / D`` (module doc).
-
-    ``tau = c0 + c1 w + c2 w^2``, ``qd = slope w``; all ``(C, T, J)``.
-    """
-
-    c0: jnp.ndarray
-    c1: jnp.ndarray
-    c2: jnp.ndarray
-    slope: jnp.ndarray
-
-
-def time_law(dyn: Dynamics, grid: TimeGrid, q) -> TimeLaw:
-    """The `TimeLaw` of ``q (C, T, J)``: inverse dynamics at ``w = 0, 1, -1``.
-
-    MuJoCo's inverse dynamics is ``M(q) qdd + C(q, qd) qd + g(q) + armature qdd + damping qd +
-    stiffness (q - ref)``: with ``qd = q' w`` and ``qdd = q'' w^2`` exactly quadratic in w.
-    """
-    slope, curve = derivatives(grid, q, jnp.ones(q.shape[0], q.dtype))
-    inv = jax.vmap(jax.vmap(dyn.inverse))
-    zero = jnp.zeros_like(q)
-    # one batch of 3C paths: the inverse dynamics is traced (and compiled) once, not thrice
-    tau = inv(
-        jnp.concatenate([q, q, q]),
-        jnp.concatenate([zero, slope, -slope]),
-        jnp.concatenate([zero, curve, curve]),
-    ).reshape((3, *q.shape))
-    c0, ahead, back = tau[0], tau[1], tau[2]
-    return TimeLaw(c0, 0.5 * (ahead - back), 0.5 * (ahead + back) - c0, slope)
-
-
-def limit_usage(law: TimeLaw, duration, vel_usable, tau_usable):
-    """Largest ``|qd| / vel_usable`` or ``|tau| / tau_usable`` of each path at ``duration (C,)``:
-    ``(C,)`` (<= 1: within the limits). Limits ``(J,)``; inf: none."""
-    w = (1.0 / duration)[:, None, None]
-    tau = law.c0 + w * (law.c1 + w * law.c2)
-    use = jnp.maximum(jnp.abs(tau) / tau_usable, jnp.abs(law.slope) * w / vel_usable)
-    return jnp.max(use, axis=(1, 2))
-
-
-def shortest_duration(
-    law: TimeLaw, duration, vel_usable, tau_usable, scan: int, iters: int
-) -> jnp.ndarray:
-    """The smallest ``D >= duration (C,)`` within the usable limits (``(J,)``); inf where no D
-    up to `MAX_DURATION` is. ``(C,)`` [s].
-
-    ``scan`` log-spaced durations from ``duration`` to `MAX_DURATION`, then ``iters`` bisection
-    steps (in log D) between the last infeasible and the first feasible one; the feasible end is
-    returned, so the result is always within the limits.
-    """
-    dtype = law.c0.dtype
-    duration = jnp.asarray(duration, dtype)
-    top = jnp.maximum(duration, MAX_DURATION)
-    frac = jnp.linspace(0.0, 1.0, scan, dtype=dtype)
-    cand = duration[:, None] * (top / duration)[:, None] ** frac[None, :]  # (C, K)
-    usage = jax.vmap(lambda d: limit_usage(law, d, vel_usable, tau_usable), 1, 1)(cand)
-    feasible = usage <= 1.0
-    first = jnp.argmax(feasible, axis=1)
-    hi = jnp.take_along_axis(cand, first[:, None], axis=1)[:, 0]
-    lo = jnp.take_along_axis(cand, jnp.maximum(first - 1, 0)[:, None], axis=1)[:, 0]
-
-    def bisect(_, bounds):
-        lo, hi = bounds
-        mid = jnp.sqrt(lo * hi)
-        ok = limit_usage(law, mid, vel_usable, tau_usable) <= 1.0
-        return jnp.where(ok, lo, mid), jnp.where(ok, mid, hi)
-
-    _, hi = jax.lax.fori_loop(0, iters, bisect, (lo, hi))
-    hi = jnp.where(first == 0, duration, hi)
-    return jnp.where(jnp.any(feasible, axis=1), hi, jnp.inf)
-
-
-def usable_limits(robot: Robot, settings: OnlineSettings, dtype=np.float32):
-    """``(vel_limit, tau_limit, vel_usable, tau_usable)``, each ``(J,)`` numpy (inf: none);
-    usable = ``(1 - limit_headroom)`` x limit."""
-    vel = np.asarray(robot.velocity_limit, np.float64)
-    tau = np.asarray(robot.torque_limit, np.float64)
-    keep = 1.0 - settings.limit_headroom
-    return tuple(np.asarray(a, dtype) for a in (vel, tau, keep * vel, keep * tau))
-
-
-def _margin(peak, limit):
-    """``min_j 1 - peak_j / limit_j`` over ``peak (C, J)``; 1 where no joint has a limit."""
-    return jnp.min(jnp.where(jnp.isfinite(limit), 1.0 - peak / limit, 1.0), axis=1)
 
 
 def build_problem(
@@ -622,8 +241,8 @@ def finish_motion(
         duration_asked=asked,
         duration_needed=needed,
         within_time=within_time,
-        torque_margin=_margin(peak_tau, tau_lim),
-        velocity_margin=_margin(peak_vel, vel_lim),
+        torque_margin=peak_margin(peak_tau, tau_lim),
+        velocity_margin=peak_margin(peak_vel, vel_lim),
         joint_margin=jnp.min(room, axis=(1, 2)),
         worst_joint=j_idx.astype(jnp.int32),
         worst_kind=worst_kind,
@@ -656,21 +275,6 @@ def online_query(
         dyn, db, targets, duration, q_start, lower, upper, basis_settings, settings
     )
     return finish_motion(dyn, grid, lower, upper, settings, basis, boundary, reach, targets)
-
-
-def resolve_settings(basis_settings, settings):
-    basis_settings = basis_settings or BasisSettings()
-    settings = settings or OnlineSettings()
-    if settings.min_neighbours > basis_settings.neighbours:
-        raise UserError(
-            f"online.min_neighbours: expected <= basis.neighbours ({basis_settings.neighbours}), "
-            f"got {settings.min_neighbours}"
-        )
-    return basis_settings, settings
-
-
-def joint_limits_f32(robot: Robot):
-    return np.asarray(robot.lower, np.float32), np.asarray(robot.upper, np.float32)
 
 
 def make_online_generator(
@@ -751,51 +355,6 @@ def to_numpy(result: OnlineResult) -> OnlineResult:
     if jax.default_backend() == "cpu":
         return jax.tree_util.tree_map(np.asarray, result)
     return OnlineResult(*jax.device_get(tuple(result)))
-
-
-def check_points(check: Callable, db, points: np.ndarray, chunk: int) -> Reach:
-    """`make_reach_checker`'s function over any number of points, in fixed-size chunks (one
-    compiled shape)."""
-    n = points.shape[0]
-    pad = (-n) % chunk
-    padded = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)]).astype(np.float32)
-    parts = [jax.device_get(check(db, padded[i : i + chunk])) for i in range(0, n + pad, chunk)]
-    return jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n], *parts)
-
-
-def nearest_reachable(
-    check: Callable, db: Database, target, chunk: int = 64
-) -> tuple[np.ndarray, float]:
-    """A reachable point near ``target (3,)`` and its distance [m] (host-level, for messages and
-    ``--nearest``).
-
-    Candidates: where the IK puts the hand, and the farthest reachable point on the segment from
-    the nearest reachable database condition toward the target (two rounds of ``chunk`` samples).
-    Returns the candidate closest to the target (an upper bound of the true distance).
-    Raises `UserError` when no database condition is reachable.
-    """
-    target = np.asarray(target, np.float32).reshape(3)
-    cond = np.asarray(db.condition)[np.asarray(db.valid)]
-    anchors = cond[check_points(check, db, cond, chunk).reachable]
-    if anchors.shape[0] == 0:
-        raise UserError("database: no valid primitive's condition is reachable; nothing is near")
-    anchor = anchors[np.argmin(np.linalg.norm(anchors - target, axis=1))]
-    lo, hi = 0.0, 1.0
-    for _ in range(2):  # coarse, then fine between the last good and the first bad sample
-        lam = np.linspace(lo, hi, chunk)
-        pts = anchor + lam[:, None] * (target - anchor)
-        ok = check_points(check, db, pts, chunk).reachable
-        good = np.flatnonzero(ok)
-        k = int(good.max()) if good.size else 0
-        lo, hi = lam[k], lam[min(k + 1, chunk - 1)]
-    best = anchor + lo * (target - anchor)
-    cand = check_points(check, db, target[None], chunk)
-    hand = check_points(check, db, np.asarray(cand.hand), chunk)
-    if hand.reachable[0]:
-        h = cand.hand[0]
-        if np.linalg.norm(h - target) < np.linalg.norm(best - target):
-            best = h
-    return best.astype(np.float32), float(np.linalg.norm(best - target))
 
 
 def final_hand(robot: Robot, q_final) -> np.ndarray:
@@ -892,78 +451,3 @@ def load_online_model(
         source=str(path),
         settings_source=settings_source,
     )
-
-
-def _limit_figure(robot: Robot, motion: OnlineResult, i: int, settings: OnlineSettings) -> str:
-    """'joint 'elbow' needs 7.2 rad/s at t = 0.31 s into the motion; its limit is 6 rad/s (5.7
-    usable with 5 % headroom)' for motion ``i`` (numpy) at its duration."""
-    j, kind = int(motion.worst_joint[i]), int(motion.worst_kind[i])
-    name = robot.joint_names[j]
-    if kind == VELOCITY:
-        what, unit, limit = "speed", "rad/s", float(robot.velocity_limit[j])
-    else:
-        what, unit, limit = "torque", "N m", float(robot.torque_limit[j])
-    usable = (1.0 - settings.limit_headroom) * limit
-    return (
-        f"joint {name!r} needs {float(motion.worst_value[i]):.4g} {unit} of {what} at t = "
-        f"{float(motion.worst_time[i]):.3f} s into the motion against a limit of {limit:.4g} "
-        f"{unit} ({usable:.4g} usable with {settings.limit_headroom:.0%} headroom)"
-    )
-
-
-def explain_unusable(
-    robot: Robot, motion: OnlineResult, i: int, settings: OnlineSettings, window: str = ""
-) -> str:
-    """Why motion ``i`` of a numpy `OnlineResult` is not usable, in one line (with the figures
-    of the binding velocity or torque limit). ``window``: what bounds its duration, e.g.
-    "between the reaction time and the ball's arrival" (default: `MAX_DURATION`)."""
-    if bool(motion.ok[i]) or not bool(motion.reachable[i]):
-        return "the motion is usable" if bool(motion.ok[i]) else "the target is not reachable"
-    needed, dur = float(motion.duration_needed[i]), float(motion.duration[i])
-    within = (
-        motion.torque_margin[i] >= 0 and motion.velocity_margin[i] >= 0 and motion.within_time[i]
-    )
-    if within or not np.isfinite(motion.worst_value[i]):
-        return "the generated motion is not usable (non-finite or outside the joint limits)"
-    figure = _limit_figure(robot, motion, i, settings)
-    if not np.isfinite(needed):
-        return (
-            f"no motion within the velocity and torque limits: even in {dur:.3f} s (the longest "
-            f"allowed{', ' + window if window else ''}) {figure}"
-        )
-    return (
-        f"the motion needs {needed:.3f} s to stay within the velocity and torque limits but only "
-        f"{dur:.3f} s are available{' ' + window if window else ''}: in {dur:.3f} s {figure}"
-    )
-
-
-def describe_limits(robot: Robot, motion: OnlineResult, i: int) -> dict[str, str]:
-    """Summary rows of motion ``i`` (numpy): its time scaling and its limit margins."""
-    asked, dur = float(motion.duration_asked[i]), float(motion.duration[i])
-    rows = {}
-    if dur > asked:
-        j, kind = int(motion.worst_joint[i]), int(motion.worst_kind[i])
-        which = "speed" if kind == VELOCITY else "torque"
-        rows["time scaling"] = (
-            f"stretched from {asked:.3f} s to {dur:.3f} s ({which} limit of joint "
-            f"{robot.joint_names[j]!r})"
-        )
-    room = float(motion.joint_margin[i])
-    rows["limit margins"] = (
-        f"torque {float(motion.torque_margin[i]):.3f}, speed "
-        f"{float(motion.velocity_margin[i]):.3f} (1 - peak/limit), joint range "
-        + (f"{room:.3f} rad" if np.isfinite(room) else "unlimited")
-    )
-    return rows
-
-
-def limit_meta(motion: OnlineResult, i: int) -> dict:
-    """The margins and the time scaling of motion ``i`` (numpy) for a trajectory file's meta."""
-    room = float(motion.joint_margin[i])
-    return {
-        "duration_asked": float(motion.duration_asked[i]),
-        "time_scaled": bool(float(motion.duration[i]) > float(motion.duration_asked[i])),
-        "torque_margin": float(motion.torque_margin[i]),
-        "velocity_margin": float(motion.velocity_margin[i]),
-        "joint_limit_margin": room if np.isfinite(room) else None,
-    }

@@ -43,80 +43,18 @@ capture sphere faster leaves it before.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
-from evojax_motion.errors import UserError, check_setting
+from evojax_motion.errors import UserError
 from evojax_motion.model.robot import Robot, mj_inverse_torques
-from evojax_motion.report.kinematics import BALL_RADIUS
+from evojax_motion.settings.online import SimSettings
 
 BALL_BODY = "evojax_ball"
 _ROBOT_AFFINITY, _BALL_TYPE = 0, 2  # contype / conaffinity bits: see the module docstring
 _FREE_OR_BALL = (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL))
-
-
-@dataclass(frozen=True)
-class SimSettings:
-    """How a plan is executed and judged.
-
-    - ``bandwidth`` [Hz], ``damping_ratio``: the PD feedback's closed-loop natural frequency f
-      and damping ratio zeta per joint (``kp = (2 pi f)^2``, ``kd = 2 zeta 2 pi f``, times the
-      joint-space inertia matrix). 8 Hz is well below the 2 ms step's limit (``2 pi f dt`` =
-      0.1) and above the motions' content (a 0.5 s reach is ~2 Hz).
-    - ``hold`` [s]: simulated after the motion ends (or the ball arrives, if later).
-    - ``ball_radius`` [m], ``ball_mass`` [kg]: a tennis ball (ITF: 3.3-3.4 cm, 56-59.4 g).
-    - ``capture_radius`` [m]: the ball's centre within this of the catching point: touching the
-      palm (ball radius 3.5 cm plus 2.5 cm, half a palm's width).
-    - ``grip_time`` [s]: how long the grip takes to close; the largest relative speed of a catch
-      is ``2 capture_radius / grip_time`` (10 m/s by default).
-    - ``fps``: frames per second of the animation.
-    """
-
-    bandwidth: float = 8.0
-    damping_ratio: float = 1.0
-    hold: float = 0.3
-    ball_radius: float = BALL_RADIUS
-    ball_mass: float = 0.057
-    capture_radius: float = 0.06
-    grip_time: float = 0.012
-    fps: float = 25.0
-
-    def __post_init__(self):
-        positive = {
-            "bandwidth": "Hz",
-            "damping_ratio": "",
-            "ball_radius": "m",
-            "ball_mass": "kg",
-            "capture_radius": "m",
-            "grip_time": "s",
-            "fps": "1/s",
-        }
-        for name, unit in positive.items():
-            value = getattr(self, name)
-            check_setting(
-                math.isfinite(value) and value > 0, name, f"a number > 0 {unit}".strip(), value
-            )
-        check_setting(
-            math.isfinite(self.hold) and self.hold >= 0, "hold", "a number >= 0 [s]", self.hold
-        )
-
-    @property
-    def kp(self) -> float:
-        """Proportional gain per unit inertia [1/s^2]."""
-        return (2.0 * math.pi * self.bandwidth) ** 2
-
-    @property
-    def kd(self) -> float:
-        """Derivative gain per unit inertia [1/s]."""
-        return 2.0 * self.damping_ratio * 2.0 * math.pi * self.bandwidth
-
-    @property
-    def max_relative_speed(self) -> float:
-        """[m/s] the fastest a ball may move relative to the catching point and be caught."""
-        return 2.0 * self.capture_radius / self.grip_time
 
 
 class Plan(NamedTuple):

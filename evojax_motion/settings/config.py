@@ -35,8 +35,8 @@ from evojax_motion.demonstrations.synthetic import DemoSettings
 from evojax_motion.errors import UserError, read_user_file
 from evojax_motion.evolution.sharding import ParallelSettings
 from evojax_motion.evolution.step import EvolutionSettings
-from evojax_motion.online.generation import MAX_DURATION
 from evojax_motion.run.training import TrainSettings
+from evojax_motion.settings.online import MAX_DURATION
 
 DYNAMICS_BACKENDS = ("rnea", "mjx")
 # Every integer of a config is a size, an index or a seed that ends up in an int32 (array shapes,
