@@ -43,6 +43,7 @@ from evojax_motion.demonstrations.mocap import markers as mk
 from evojax_motion.demonstrations.mocap.markers import MarkerData, TrialError
 from evojax_motion.errors import UserError
 from evojax_motion.motion.angles import on_rest_branch
+from evojax_motion.settings.demonstrations import IKSettings
 
 FORMATS = ("vicon-csv", "c3d", "bvh", "asf-amc", "angles-csv")
 REFERENCES = ("shoulder", "lab")  # --reference, besides a marker or key point name
@@ -410,7 +411,7 @@ def import_trials(params: ImportParams) -> ImportResult:
         base_z = rt.base_height(robot) if kp.weights[0] == 0 else None
         prepared = _prepare_markers(params, model, kp, rest_points, base_z, files, reports)
         t_ik = time.perf_counter()
-        settings = rt.IKSettings(smooth=params.smooth, iters=params.ik_iters)
+        settings = IKSettings(smooth=params.smooth, iters=params.ik_iters)
         prepared_q = _solve(params, robot, dyn, kp, settings, prepared, lower, upper, rest_clipped)
         ik_s = time.perf_counter() - t_ik
 
