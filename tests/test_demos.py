@@ -14,13 +14,15 @@ import pytest
 
 from evojax_motion.demonstrations.synthetic import (
     CITATIONS,
+    generate_demonstrations,
+    summarize_demonstrations,
+)
+from evojax_motion.demonstrations.workspace import (
     POSTURE_STD_MAX_DEG,
     REGION_AZIMUTH_HALF_DEG,
     REGION_RADIUS_FRACTION,
     ROBOT_PRESETS,
     derive_defaults,
-    generate_demonstrations,
-    summarize_demonstrations,
 )
 from evojax_motion.errors import UserError
 from evojax_motion.model.dynamics import make_dynamics

@@ -81,7 +81,7 @@ class DemoSettings:
     ``posture_std_deg``, ``posture_weight``) come from the robot's preset for the shipped robots
     (`ROBOT_PRESETS`: mahru_arm, arm6) and are derived from the model for any other
     (`derive_defaults`). The presets, the ``derive_*`` functions and the upper-case constants
-    named below are in `demonstrations.synthetic`.
+    named below are in `demonstrations.workspace`.
 
     - ``count``: demonstrations in the database (default 311, the paper's sec. 4.1).
     - ``samples``: T, samples per trajectory on normalised time (default 100).
