@@ -11,7 +11,7 @@ hand):
    `default_weights`: every key point when the robot's upper arm can hang below its shoulder as
    a person's does (an anthropomorphic arm), else the hand only (the others still set the scale).
 1. Scaling (`scale_to_robot`): the human key points, relative to the person's shoulder in a frame
-   that moves with the person (`markers.body_frames`), are rebuilt with the robot's segment
+   that moves with the person (`frames.body_frames`), are rebuilt with the robot's segment
    lengths keeping every segment's direction, ``x_k = x_(k-1) + L_robot,k * unit(h_k - h_(k-1))``,
    from the robot's shoulder; so the human arm's reach becomes the robot's. With another reference
    point, the shoulder moves by the human's displacement times the ratio of arm lengths. Human
