@@ -82,7 +82,9 @@ def main(argv=None) -> int:
     from dynamics_throughput import machine_info
 
     from evojax_motion.demonstrations.mocap import retarget as rt
-    from evojax_motion.demonstrations.mocap.importer import ImportParams, import_trials, report_dict
+    from evojax_motion.demonstrations.mocap.import_params import ImportParams
+    from evojax_motion.demonstrations.mocap.import_report import report_dict
+    from evojax_motion.demonstrations.mocap.importer import import_trials
     from evojax_motion.model.robot import load_robot
     from evojax_motion.motion.database import save_database
 

@@ -67,9 +67,10 @@ SYNTHETIC = "synthetic demonstrations (demos.generate_demonstrations), 611 x T=1
 
 def synthetic_database(path: Path, count: int, capacity: int, samples: int, seed: int) -> Path:
     """Demonstrations of the paper's size (``count`` valid of ``capacity``, all valid here)."""
-    from evojax_motion.demonstrations.synthetic import DemoSettings, generate_demonstrations
+    from evojax_motion.demonstrations.synthetic import generate_demonstrations
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.model.robot import load_robot
+    from evojax_motion.settings.demonstrations import DemoSettings
 
     robot = load_robot("mahru_arm")
     dyn = make_dynamics(robot)

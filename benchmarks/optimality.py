@@ -93,9 +93,10 @@ def build_problem(args):
         db = synthetic_database(robot, dyn, args.demos, args.samples, k_demo)
         targets, boundary = synthetic_conditions(db, robot, args.conditions, bs, k_cond)
     else:
-        from evojax_motion.demonstrations.synthetic import DemoSettings, generate_demonstrations
+        from evojax_motion.demonstrations.synthetic import generate_demonstrations
         from evojax_motion.evolution.conditions import make_conditions
         from evojax_motion.evolution.step import EvolutionSettings
+        from evojax_motion.settings.demonstrations import DemoSettings
 
         db, _ = generate_demonstrations(
             robot, dyn, DemoSettings(count=args.demos, samples=args.samples), k_demo

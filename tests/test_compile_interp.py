@@ -179,9 +179,10 @@ def test_bad_inputs_are_flagged_in_the_batch(compiled):
 @pytest.mark.slow
 def test_leave_one_out_reproduces_demonstrations():
     """Each held-out demonstration, rebuilt from its neighbours with its own BCs (rest to rest)."""
-    from evojax_motion.demonstrations.synthetic import DemoSettings, generate_demonstrations
+    from evojax_motion.demonstrations.synthetic import generate_demonstrations
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.model.robot import load_robot
+    from evojax_motion.settings.demonstrations import DemoSettings
 
     robot = load_robot("mahru_arm")
     dyn = make_dynamics(robot, "rnea")

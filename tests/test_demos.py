@@ -14,15 +14,15 @@ import pytest
 
 from evojax_motion.demonstrations.synthetic import (
     CITATIONS,
+    generate_demonstrations,
+    summarize_demonstrations,
+)
+from evojax_motion.demonstrations.workspace import (
     POSTURE_STD_MAX_DEG,
     REGION_AZIMUTH_HALF_DEG,
     REGION_RADIUS_FRACTION,
     ROBOT_PRESETS,
-    CatchRegion,
-    DemoSettings,
     derive_defaults,
-    generate_demonstrations,
-    summarize_demonstrations,
 )
 from evojax_motion.errors import UserError
 from evojax_motion.model.dynamics import make_dynamics
@@ -30,6 +30,7 @@ from evojax_motion.model.robot import load_robot, robot_from_mjcf_text
 from evojax_motion.motion.database import HUMAN
 from evojax_motion.motion.objective import torque_cost
 from evojax_motion.motion.timegrid import derivatives, make_time_grid
+from evojax_motion.settings.demonstrations import CatchRegion, DemoSettings
 
 TOL_END_SPEED = 1e-3  # [rad/s] joint speed at s = 0 and s = 1 (rest to rest)
 TOL_CATCH = 5e-3  # [m] hand at the end vs the catch point (the brief's limit)

@@ -1,4 +1,5 @@
-"""``evojax-motion import`` end to end (evojax_motion.demonstrations.mocap.importer).
+"""``evojax-motion import`` end to end (evojax_motion.cli.importing,
+evojax_motion.demonstrations.mocap.importer).
 
 Real data: the shipped UE ADL sample (Vicon CSV), imported for mahru_arm and arm6, and converted
 to C3D; with the published Kinova Gen3 model (continuous joints) from ``shared/robots`` beside
@@ -21,16 +22,16 @@ import mujoco
 import numpy as np
 import pytest
 
-from evojax_motion.demonstrations.mocap.c3d_file import write_c3d
-from evojax_motion.demonstrations.mocap.importer import (
+from evojax_motion.cli.importing import (
     EXIT_OK,
     EXIT_SKIPPED,
     EXIT_USER_ERROR,
-    ImportParams,
     add_import_parser,
-    format_report,
-    import_trials,
 )
+from evojax_motion.demonstrations.mocap.c3d_file import write_c3d
+from evojax_motion.demonstrations.mocap.import_params import ImportParams
+from evojax_motion.demonstrations.mocap.import_report import format_report
+from evojax_motion.demonstrations.mocap.importer import import_trials
 from evojax_motion.demonstrations.mocap.vicon_csv import read_vicon_csv
 from evojax_motion.errors import UserError
 from evojax_motion.model.robot import load_robot

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from evojax_motion.demonstrations.mocap import calibration as cal
+from evojax_motion.demonstrations.mocap import frames as fr
 from evojax_motion.demonstrations.mocap import markers as mk
 from evojax_motion.demonstrations.mocap.angles_csv import (
     AngleSource,
@@ -345,7 +347,7 @@ def test_rigid_motion_recovers_a_known_motion():
     rots = np.stack([_rotation(rng.normal(size=3), rng.uniform(-3, 3)) for _ in range(6)])
     d = rng.normal(size=(6, 3))
     cur = np.einsum("fij,kj->fki", rots, ref) + d[:, None]
-    r, t = mk.rigid_motion(ref, cur)
+    r, t = cal.rigid_motion(ref, cur)
     np.testing.assert_allclose(r, rots, atol=1e-12)
     np.testing.assert_allclose(t, d, atol=1e-12)
 
@@ -388,23 +390,23 @@ def test_calibration_functional_centre_and_landmarks():
         },
         forward="+x",
     )
-    calib = mk.calibrate(model, st, [mv])
+    calib = cal.calibrate(model, st, [mv])
     np.testing.assert_allclose(calib.joint_centres["shoulder"], centre, atol=TOL_SCORE)
     assert calib.residual["shoulder"] < TOL_SCORE
-    pts = mk.keypoints(mv, model, calib)
+    pts = cal.keypoints(mv, model, calib)
     np.testing.assert_allclose(pts["hand"], moving[:, -1], atol=1e-12)
     # the centre moves with the proximal segment
-    r_a, d_a = mk.rigid_motion(static[0, :4], moving[:, :4])
+    r_a, d_a = cal.rigid_motion(static[0, :4], moving[:, :4])
     np.testing.assert_allclose(pts["shoulder"], r_a @ centre + d_a, atol=TOL_SCORE)
     # without the static trial the landmark cannot be made
-    calib2 = mk.calibrate(model, None, [mv])
+    calib2 = cal.calibrate(model, None, [mv])
     with pytest.raises(TrialError, match="required marker L missing"):
-        mk.keypoints(mv, model, calib2)
+        cal.keypoints(mv, model, calib2)
 
 
 def test_body_frame_from_the_shoulder_line():
     pts = {"shoulder": np.array([[0.0, -1.0, 2.0]]), "left_shoulder": np.array([[0.3, -0.6, 2.1]])}
-    origin, rot = mk.body_frame(pts, np.array([0.0, 0.0, 1.0]), None)
+    origin, rot = fr.body_frame(pts, np.array([0.0, 0.0, 1.0]), None)
     np.testing.assert_allclose(origin, [0.0, -1.0, 2.0])
     right = np.array([-0.3, -0.4, 0.0]) / 0.5
     np.testing.assert_allclose(rot[1], -right, atol=1e-12)  # y: left
@@ -444,7 +446,7 @@ def test_body_frames_follow_a_person_who_walks_and_turns():
 
     def body(pts):
         heading = pts["RHIP"] - pts["LHIP"]
-        origin, r = mk.body_frames(pts, up, None, pts["shoulder"], heading)
+        origin, r = fr.body_frames(pts, up, None, pts["shoulder"], heading)
         return {k: np.einsum("fij,fj->fi", r, v - origin) for k, v in pts.items()}
 
     still_body, moved_body = body(still), body(moved)
@@ -454,15 +456,15 @@ def test_body_frames_follow_a_person_who_walks_and_turns():
     # frame 0 is body_frame's: x forward, y left
     np.testing.assert_allclose(still_body["left_shoulder"][0], [0.0, 0.4, 0.0], atol=TOL_POS)
     tilted = (moved["RHIP"] - moved["LHIP"]) + np.outer(np.sin(5 * s), up)
-    np.testing.assert_allclose(mk.heading_turn(tilted, up), turn, atol=1e-9)
+    np.testing.assert_allclose(fr.heading_turn(tilted, up), turn, atol=1e-9)
     # without a heading the frame is frame 0's, fixed: the walk stays in the coordinates
-    origin, r = mk.body_frames(moved, up, None)
+    origin, r = fr.body_frames(moved, up, None)
     np.testing.assert_allclose(origin, np.broadcast_to(moved["shoulder"][0], (n, 3)))
     assert np.ptp(np.einsum("fij,fj->fi", r, moved["shoulder"] - origin), axis=0).max() > 0.7
     with pytest.raises(TrialError, match=r"heading at frame 3: its horizontal part is 0\.0 mm"):
         vertical = tilted.copy()
         vertical[3] = up
-        mk.heading_turn(vertical, up)
+        fr.heading_turn(vertical, up)
 
 
 def test_heading_markers_of_the_models():
@@ -472,13 +474,13 @@ def test_heading_markers_of_the_models():
     model = mk.MARKER_MODELS["ue_adl"]
     assert model.heading == (("LSHO1", "LSHO2", "LSHO3", "LSHO4"), ("STRN",))
     pts = {"shoulder": d.get("RSHO1"), "left_shoulder": d.get("LSHO1")}
-    h = mk.heading_direction(d, pts, model)
+    h = fr.heading_direction(d, pts, model)
     lsho = [d.get(f"LSHO{i}") for i in range(1, 5)]
     np.testing.assert_allclose(h.direction, d.get("STRN") - np.mean(lsho, axis=0))
     np.testing.assert_allclose(h.centre, np.mean([*lsho, d.get("STRN")], axis=0))
     assert h.source == "markers LSHO1+LSHO2+LSHO3+LSHO4 -> STRN"
     without = d._replace(names=tuple("X" if n == "STRN" else n for n in d.names))
-    h = mk.heading_direction(without, pts, model)
+    h = fr.heading_direction(without, pts, model)
     np.testing.assert_allclose(h.direction, pts["shoulder"] - pts["left_shoulder"])
     assert h.centre is None and h.source == "shoulder line"
 

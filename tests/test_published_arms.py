@@ -2,7 +2,7 @@
 5 and 7) and UFACTORY xArm7, unedited, with a config that names the model file and nothing else.
 
 Every ``demos`` setting takes its default (derived from the model:
-`demonstrations.synthetic.derive_defaults`);
+`demonstrations.workspace.derive_defaults`);
 ``demos`` and a 3-generation ``train`` of 40 conditions run at tiny sizes (`configs/tiny.yaml`).
 The models live in the folder ``shared/robots`` beside the repository; without it these tests
 are skipped.
@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from evojax_motion.cli.entry import main
-from evojax_motion.demonstrations.synthetic import derive_defaults
+from evojax_motion.demonstrations.workspace import derive_defaults
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.database import human_mask, load_database
 

@@ -18,6 +18,7 @@ from evojax_motion.model.dynamics import make_dynamics
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.objective import torque_cost
 from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.settings.demonstrations import IKSettings
 
 TOL_FK = 1e-5  # [m] float32 FK vs C MuJoCo
 TOL_IK = 1e-3  # [m] reachable key points, after the warm-up and 4 LM iterations per frame
@@ -221,7 +222,7 @@ def test_ik_recovers_reachable_keypoints(name, mahru, arm6):
     q_true = _smooth_trajectory(robot, 0)
     targets = np.stack([[rt.rest_keypoints(dyn, kp, q) for q in path] for path in q_true])
     out = rt.solve_keypoint_ik(
-        dyn, kp, rt.IKSettings(), targets, robot.rest, robot.lower, robot.upper, robot.rest
+        dyn, kp, IKSettings(), targets, robot.rest, robot.lower, robot.upper, robot.rest
     )
     err = np.asarray(out.error)
     assert err.max() < TOL_IK, err.max()
@@ -241,7 +242,7 @@ def test_ik_keeps_limits_on_unreachable_targets(mahru):
     targets = np.tile(rt.rest_keypoints(dyn, kp, robot.rest), (B, F, 1, 1))
     targets[..., 1:, :] += np.array([0.0, -2.0, 2.0])  # far above and to the right
     out = rt.solve_keypoint_ik(
-        dyn, kp, rt.IKSettings(), targets, robot.rest, robot.lower, robot.upper, robot.rest
+        dyn, kp, IKSettings(), targets, robot.rest, robot.lower, robot.upper, robot.rest
     )
     q = np.asarray(out.q)
     assert np.isfinite(q).all()

@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_train)
 
-    from evojax_motion.demonstrations.mocap.importer import add_import_parser
+    from evojax_motion.cli.importing import add_import_parser
 
     add_import_parser(sub)
 

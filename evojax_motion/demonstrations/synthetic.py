@@ -5,11 +5,13 @@ of a ball", using only his right arm and waist, and turn the marker trajectories
 trajectories with an IK solver (sec. 2). No such recording ships with this project, so
 `generate_demonstrations` synthesises a stand-in from models of human reaching:
 
-- catch points: a spherical-shell sector around the shoulder (`CatchRegion`, centred on a named
-  body of the robot at its rest posture), filled with uniform volume density by a Halton sequence
-  (stratified, low-discrepancy) under a random shift drawn from the key. The shipped robots have
-  a preset sector (`ROBOT_PRESETS`); for any other arm it is derived from the reachable workspace
-  (`derive_region`: the hand over `WORKSPACE_SAMPLES` postures drawn within the joint limits);
+- catch points: a spherical-shell sector around the shoulder
+  (`settings.demonstrations.CatchRegion`, centred on a named body of the robot at its rest
+  posture), filled with uniform volume density by a Halton sequence (stratified,
+  low-discrepancy) under a random shift drawn from the key. The shipped robots have a preset
+  sector (`workspace.ROBOT_PRESETS`); for any other arm it is derived from the reachable
+  workspace (`workspace.derive_region`: the hand over `workspace.WORKSPACE_SAMPLES` postures
+  drawn within the joint limits);
 - hand path, by progress u in [0, 1]: ``(1 - arc_blend)`` straight line (Morasso 1981; Flash &
   Hogan 1985) + ``arc_blend`` shoulder-centred arc (direction slerped, distance interpolated; from
   a hanging arm, straight lines pass close to the shoulder and need a deep, fast elbow flexion and
@@ -26,14 +28,14 @@ trajectories with an IK solver (sec. 2). No such recording ships with this proje
 - posture: a hand position leaves the arm redundant (7 joints, 3 constraints); the IK resolves it
   toward a comfortable final posture (mahru_arm's preset: rest for waist and wrist, shoulder
   forward, elbow moderately flexed; any other arm: its rest posture moved into the central half
-  of each joint's range, `derive_comfort`, after the joint-range criterion of Liegeois 1977) plus
-  per-trial Gaussian noise, whose null-space part is the trial-to-trial elbow swivel and
+  of each joint's range, `workspace.derive_comfort`, after the joint-range criterion of Liegeois
+  1977) plus per-trial Gaussian noise, whose null-space part is the trial-to-trial elbow swivel and
   trunk/wrist variability of human reaching (Kang, He & Tillery 2005; Lacquaniti & Soechting
   1982). The preference moves from rest with the hand's progress;
 - joint trajectories: `model.ik.solve_ik_trajectory` at T evenly spaced values of u (warm-started
-scan,
-  limits shrunk by ``limit_margin_deg``), then a C2 cubic spline in u evaluated at the progress of
-  the T time samples; cost ``0.5 int |tau|^2 dt`` (eq. 5, `motion.objective.CostProgram`).
+  scan, limits shrunk by ``limit_margin_deg``), then a C2 cubic spline in u evaluated at the
+  progress of the T time samples (`shaping`); cost ``0.5 int |tau|^2 dt`` (eq. 5,
+  `motion.objective.CostProgram`).
 
 Trials that miss their path or catch point by more than ``catch_tolerance`` or touch the shrunk
 limits (a clamped joint has a kink) are rejected. Each round draws ``oversample * count``
@@ -49,14 +51,27 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
+from evojax_motion.demonstrations.shaping import (
+    HALTON_BASES,
+    halton,
+    minimum_jerk,
+    region_points,
+    shoulder_arc,
+    spline_eval,
+    spline_matrix,
+)
+from evojax_motion.demonstrations.workspace import (
+    LIMIT_TOUCH_TOL,
+    Resolved,
+    resolve_settings,
+    sample_workspace,
+)
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics
@@ -67,12 +82,10 @@ from evojax_motion.motion.database import Database, human_mask, make_database
 from evojax_motion.motion.objective import CostProgram
 from evojax_motion.motion.timegrid import derivatives, make_time_grid
 from evojax_motion.run import cache as compile_cache
+from evojax_motion.settings.demonstrations import MAX_ASYMMETRY, DemoSettings
 
 _Array = jax.Array | np.ndarray
-HALTON_BASES = (2, 3, 5)
-LIMIT_TOUCH_TOL = 1e-4  # [rad] a joint this close to the shrunk limits was clamped by the IK
 CLIP_SIGMAS = 3.0  # every normal draw is clipped at this many standard deviations
-MAX_ASYMMETRY = 0.5  # |a| of the time warp; |a| < 1 keeps it monotone
 
 CITATIONS = (
     "Park, Ra, Kim & Song (2008), Imitation learning of robot movement using evolutionary "
@@ -94,261 +107,6 @@ CITATIONS = (
     "Liegeois (1977), Automatic supervisory control of the configuration and behavior of "
     "multibody mechanisms, IEEE Trans. SMC 7(12):868-871 (preferring the middle of joint ranges)",
 )
-
-
-@dataclass(frozen=True)
-class CatchRegion:
-    """Where the catch points lie: a spherical-shell sector around a body of the robot.
-
-    frame: body whose origin, at the rest posture, is the centre (e.g. the shoulder); axes are the
-      world axes (x forward, y left, z up for the shipped robots).
-    radius: (min, max) distance from the centre [m].
-    azimuth_deg: (min, max) angle about +z from +x [deg]; positive toward +y (left); within
-      [-360, 360] and at most one turn wide (a sector may cross +-180).
-    elevation_deg: (min, max) angle above the horizontal plane [deg].
-    """
-
-    frame: str = "upper_arm"
-    radius: tuple[float, ...] = (0.32, 0.52)
-    azimuth_deg: tuple[float, ...] = (-45.0, 15.0)
-    elevation_deg: tuple[float, ...] = (-30.0, 30.0)
-
-    def __post_init__(self):
-        _check_range("radius", self.radius, 0.0, math.inf, open_low=True)
-        _check_range("azimuth_deg", self.azimuth_deg, -360.0, 360.0, max_width=360.0)
-        _check_range("elevation_deg", self.elevation_deg, -90.0, 90.0)
-        if not isinstance(self.frame, str) or not self.frame:
-            raise ValueError(f"frame: expected a body name, got {self.frame!r}")
-
-
-def _check_range(name, value, lo, hi, open_low=False, max_width=math.inf):
-    ok = (
-        isinstance(value, tuple)
-        and len(value) == 2
-        and all(isinstance(v, (int, float)) and math.isfinite(v) for v in value)
-        and (value[0] > lo if open_low else value[0] >= lo)
-        and value[0] < value[1] <= hi
-        and value[1] - value[0] <= max_width
-    )
-    if not ok:
-        width = f" and max - min <= {max_width:g}" if math.isfinite(max_width) else ""
-        raise ValueError(
-            f"{name}: expected [min, max] with {lo:g} {'<' if open_low else '<='} min < max <= "
-            f"{hi:g}{width}, got {value!r}"
-        )
-
-
-class RobotPreset(NamedTuple):
-    """Per-robot defaults of the robot-specific `DemoSettings` fields (used where they are None)."""
-
-    region: CatchRegion
-    comfort_deg: dict  # joint name -> preferred final angle [deg]; other joints: rest
-    posture_std_deg: dict  # joint name -> std of the per-trial preference noise [deg]
-    posture_weight: dict  # joint name -> null-space weight of the preference (IK ``w_pref``)
-
-
-ROBOT_PRESETS: dict[str, RobotPreset] = {
-    # Shoulder joint centre at (0, -0.19, 1.40), hand reach ~0.61 m. The sector (52-85 % of the
-    # reach, in front of and a little across the right shoulder) spans about the box that
-    # docs/robot_models.md verifies as reachable with margins (x 0.2-0.5, y -0.5-0.1, z 1.1-1.7 m).
-    "mahru_arm": RobotPreset(
-        region=CatchRegion("upper_arm", (0.32, 0.52), (-45.0, 15.0), (-30.0, 30.0)),
-        comfort_deg={
-            "shoulder_pitch": 45.0,
-            "shoulder_roll": 10.0,
-            "shoulder_yaw": 10.0,
-            "elbow": 60.0,
-        },
-        posture_std_deg={
-            "waist_yaw": 3.0,
-            "shoulder_pitch": 5.0,
-            "shoulder_roll": 8.0,
-            "shoulder_yaw": 12.0,
-            "elbow": 5.0,
-            "wrist_pitch": 5.0,
-            "wrist_yaw": 3.0,
-        },
-        # Within reach, people recruit the trunk little (Kaminski, Bock & Gentile 1995): the
-        # waist is held toward its preference 4 times as hard as the arm joints.
-        posture_weight={"waist_yaw": 1.0},
-    ),
-    # Shoulder (upper_link origin) at (0.05, 0, 0.78), reach ~0.91 m; its slow joints stretch
-    # most durations beyond Fitts' law (max_speed_fraction).
-    "arm6": RobotPreset(
-        region=CatchRegion("upper_link", (0.40, 0.70), (-40.0, 40.0), (-30.0, 20.0)),
-        comfort_deg={},
-        posture_std_deg={},
-        posture_weight={},
-    ),
-}
-DEFAULT_POSTURE_STD_DEG = 5.0  # for joints a preset does not name
-DEFAULT_POSTURE_WEIGHT = 0.25
-
-# Defaults for a robot without a preset, derived from its model (`derive_region`,
-# `derive_comfort`, `derive_posture_std`).
-WORKSPACE_SAMPLES = 4096  # postures drawn within the joint limits for the reachable workspace
-WORKSPACE_SEED = 0  # their draw: the derived region is a property of the robot, not of demos.seed
-SHOULDER_SPREAD = 0.1  # the shoulder: the deepest body that moves less than this x hand extent
-REGION_RADIUS_FRACTION = (0.5, 0.75)  # catch radii as fractions of the reach from the shoulder
-REGION_AZIMUTH_HALF_DEG = 40.0  # the sector spans +-this about the front
-REGION_ELEVATION_DEG = (-20.0, 30.0)
-FRONT_MIN_FRACTION = 0.1  # a rest hand this far (x reach) out horizontally defines the front
-COMFORT_CENTRAL_FRACTION = 0.5  # the comfortable posture lies in this central part of a range
-POSTURE_STD_FRACTION = 0.04  # per-trial preference noise: this fraction of a joint's range...
-POSTURE_STD_MAX_DEG = 8.0  # ...at most this; a continuous joint gets the most
-MIN_WORKSPACE_EXTENT = 1e-3  # [m] an end effector that moves less has an empty workspace
-
-
-# Numeric fields of DemoSettings: (lowest, highest) allowed, both inclusive.
-_NUMBER_RANGES = {
-    "fitts_a": (1e-3, 10.0),
-    "fitts_b": (1e-3, 10.0),
-    "target_width": (1e-3, 10.0),
-    "duration_noise": (0.0, 0.5),
-    "asymmetry_mean": (-MAX_ASYMMETRY, MAX_ASYMMETRY),
-    "asymmetry_std": (0.0, 0.2),
-    "curvature_std": (0.0, 0.1),
-    "arc_blend": (0.0, 1.0),
-    "max_speed_fraction": (0.05, 1.0),
-    "limit_margin_deg": (0.0, 20.0),
-    "catch_tolerance": (1e-6, 0.1),
-    "oversample": (1.0, 100.0),
-}
-_INT_MINIMA = {"count": 1, "samples": 8, "ik_iters": 1, "max_rounds": 1}
-
-
-@dataclass(frozen=True)
-class DemoSettings:
-    """How the synthetic demonstrations are drawn (the config's ``demos`` section; the models in
-    the module docstring). Every key has a default that works for any arm: the four robot-specific
-    ones (``region``, ``comfort_joints``/``comfort_deg``, ``posture_std_deg``,
-    ``posture_weight``) come from the robot's preset for the shipped robots (`ROBOT_PRESETS`:
-    mahru_arm, arm6) and are derived from the model for any other (`derive_defaults`).
-
-    - ``count``: demonstrations in the database (default 311, the paper's sec. 4.1).
-    - ``samples``: T, samples per trajectory on normalised time (default 100).
-    - ``seed``: the PRNG key the CLI builds (``generate_demonstrations`` takes the key itself;
-      default 0). Same key, same settings -> bit-identical database.
-    - ``region``: where the catch points lie, a `CatchRegion` ``{frame, radius [m],
-      azimuth_deg, elevation_deg}``: a spherical-shell sector around the origin of body
-      ``frame`` at the rest posture, world axes. Default (null): the preset's; else derived
-      from the reachable workspace (`derive_region`): the hand over `WORKSPACE_SAMPLES`
-      postures drawn uniformly within the joint limits (continuous joints: one turn about
-      rest); ``frame`` = the shoulder, the deepest body of the arm's chain that moves less than
-      `SHOULDER_SPREAD` of the hand's extent; ``radius`` = `REGION_RADIUS_FRACTION` (0.5-0.75)
-      of the largest sampled distance of the hand from it (comfortable reach, away from the
-      base); ``azimuth_deg`` = +-`REGION_AZIMUTH_HALF_DEG` (40) about the front (the rest
-      hand's horizontal direction from the shoulder, else +x); ``elevation_deg`` =
-      `REGION_ELEVATION_DEG` (-20..30).
-    - ``fitts_a`` [s], ``fitts_b`` [s/bit], ``target_width`` [m]: Fitts' law ``D = a + b
-      log2(2 d / W)`` for a hand travel d (defaults 0.25 s, 0.10 s/bit, 0.08 m).
-    - ``duration_noise``: std of log(D) around Fitts' law (default 0.08).
-    - ``asymmetry_mean``, ``asymmetry_std``: time-warp parameter a, speed peak earlier for
-      a > 0 (defaults 0.10, 0.05).
-    - ``curvature_std``: std of the random bend's largest deviation, a fraction of the path
-      length (default 0.03).
-    - ``arc_blend``: hand path = (1 - arc_blend) straight line + arc_blend shoulder-centred arc
-      (default 0.8).
-    - ``max_speed_fraction``: durations are stretched where a joint would exceed this fraction
-      of its velocity limit (default 0.9; joints without a limit never stretch).
-    - ``comfort_joints``, ``comfort_deg``: preferred final angles [deg] of the named joints, the
-      other joints at rest (set both or neither). Default (null): the preset's; else derived
-      (`derive_comfort`): the rest posture moved into the central half
-      (`COMFORT_CENTRAL_FRACTION`) of each joint's range; continuous joints at rest.
-    - ``posture_std_deg``: std [deg] of the per-trial Gaussian noise on the preferred final
-      posture, one value for all joints or one per joint. Default (null): the preset's (5 deg
-      for joints it does not name); else derived (`derive_posture_std`):
-      `POSTURE_STD_FRACTION` (4 %) of each joint's range, at most `POSTURE_STD_MAX_DEG` (8 deg;
-      a continuous joint gets 8).
-    - ``posture_weight``: null-space weights in (0, 1] of the preference (IK ``w_pref``), one
-      value or one per joint; a heavier joint stays nearer its preferred angle. Default (null):
-      the preset's; else `DEFAULT_POSTURE_WEIGHT` (0.25) for every joint.
-    - ``limit_margin_deg`` [deg]: the IK keeps every joint this far inside its limits; a trial
-      that comes closer is rejected (default 2). The rest posture must keep it too.
-    - ``catch_tolerance`` [m]: largest hand error along the path and at the catch point
-      (default 0.005).
-    - ``ik_iters``: IK iterations per path node (default 8).
-    - ``oversample``: candidates per round / count (default 1.2).
-    - ``max_rounds``: candidate rounds before giving up (default 8); the error then counts the
-      candidates by cause (limits, misses with figures, catch points beyond the sampled reach).
-    """
-
-    count: int = 311
-    samples: int = 100
-    seed: int = 0
-    region: CatchRegion | None = None
-    fitts_a: float = 0.25
-    fitts_b: float = 0.10
-    target_width: float = 0.08
-    duration_noise: float = 0.08
-    asymmetry_mean: float = 0.10
-    asymmetry_std: float = 0.05
-    curvature_std: float = 0.03
-    arc_blend: float = 0.8
-    max_speed_fraction: float = 0.9
-    comfort_joints: tuple[str, ...] | None = None
-    comfort_deg: tuple[float, ...] | None = None
-    posture_std_deg: tuple[float, ...] | None = None
-    posture_weight: tuple[float, ...] | None = None
-    limit_margin_deg: float = 2.0
-    catch_tolerance: float = 0.005
-    ik_iters: int = 8
-    oversample: float = 1.2
-    max_rounds: int = 8
-
-    def __post_init__(self):
-        def fail(name, expected):
-            raise ValueError(f"{name}: expected {expected}, got {getattr(self, name)!r}")
-
-        for name, low in _INT_MINIMA.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                fail(name, f"an integer >= {low}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
-            fail("seed", "an integer")
-        for name, (lo, hi) in _NUMBER_RANGES.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
-                fail(name, f"a number in [{lo:g}, {hi:g}]")
-        if self.region is not None and not isinstance(self.region, CatchRegion):
-            fail("region", "a catch region (frame, radius, azimuth_deg, elevation_deg) or null")
-        if self.comfort_joints is not None and not all(
-            isinstance(n, str) for n in self.comfort_joints
-        ):
-            fail("comfort_joints", "a list of joint names or null")
-        if (self.comfort_joints is None) != (self.comfort_deg is None) or (
-            self.comfort_deg is not None
-            and (
-                len(self.comfort_deg) != len(self.comfort_joints)
-                or not all(_finite(v) for v in self.comfort_deg)
-            )
-        ):
-            fail("comfort_deg", "one angle per entry of comfort_joints (set both or neither)")
-        if self.posture_std_deg is not None and not (
-            len(self.posture_std_deg) >= 1
-            and all(_finite(v) and v >= 0 for v in self.posture_std_deg)
-        ):
-            fail("posture_std_deg", "a list of numbers >= 0 (one, or one per joint) or null")
-        if self.posture_weight is not None and not (
-            len(self.posture_weight) >= 1
-            and all(_finite(v) and 0 < v <= 1 for v in self.posture_weight)
-        ):
-            fail("posture_weight", "a list of numbers in (0, 1] (one, or one per joint) or null")
-
-
-def _finite(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-class _Resolved(NamedTuple):
-    """Robot-specific settings resolved against the robot (numpy, float64)."""
-
-    region: CatchRegion
-    centre: np.ndarray  # (3,) region centre [m]
-    comfort: np.ndarray  # (J,) preferred final posture [rad]
-    posture_std: np.ndarray  # (J,) [rad]
-    posture_weight: np.ndarray  # (J,) IK w_pref
-    source: str  # where the robot-specific defaults came from (a preset, or derived)
 
 
 class _Params(NamedTuple):
@@ -386,274 +144,6 @@ class _Trials(NamedTuple):
     asymmetry: _Array  # (P,)
     curvature: _Array  # (P,)
     stretched: _Array  # (P,) duration lengthened beyond Fitts' law for the velocity limits
-
-
-class Workspace(NamedTuple):
-    """The end effector's reachable workspace, sampled (`sample_workspace`); n postures."""
-
-    hand: np.ndarray  # (n, 3) end-effector site positions [m]
-    chain: tuple[str, ...]  # named bodies from the world to the site's body, world first
-    body_pos: np.ndarray  # (n, len(chain), 3) their origins [m]
-    rest_hand: np.ndarray  # (3,) the site at the rest posture [m]
-    rest_body: np.ndarray  # (len(chain), 3) the bodies' origins at the rest posture [m]
-
-    @property
-    def extent(self) -> float:
-        """[m] the farthest sampled hand position from their mean."""
-        return float(np.linalg.norm(self.hand - self.hand.mean(axis=0), axis=1).max())
-
-
-def sample_workspace(
-    robot: Robot, margin: float = 0.0, n: int = WORKSPACE_SAMPLES, seed: int = WORKSPACE_SEED
-) -> Workspace:
-    """Forward kinematics (C MuJoCo, float64) of ``n`` postures drawn uniformly within the joint
-    limits shrunk by ``margin`` [rad] (`Robot.sample_postures`: continuous joints one turn about
-    rest; other joints of the model at ``qpos0``), from a fixed ``seed``."""
-    m = robot.mj_model
-    chain, b = [], int(m.site_bodyid[robot.site_id])
-    while True:
-        if mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b):
-            chain.append(b)
-        if b == 0:
-            break
-        b = int(m.body_parentid[b])
-    chain.reverse()
-    postures = robot.sample_postures(np.random.default_rng(seed), n, margin)
-    data = mujoco.MjData(m)
-
-    def fk(q):
-        data.qpos[:] = m.qpos0
-        data.qpos[robot.qpos_adr] = q
-        mujoco.mj_kinematics(m, data)
-        return data.site_xpos[robot.site_id].copy(), data.xpos[chain].copy()
-
-    hand, body = np.empty((n, 3)), np.empty((n, len(chain), 3))
-    for i, q in enumerate(postures):
-        hand[i], body[i] = fk(q)
-    rest_hand, rest_body = fk(robot.rest)
-    names = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, c) for c in chain)
-    return Workspace(hand, names, body, rest_hand, rest_body)
-
-
-def derive_region(robot: Robot, workspace: Workspace) -> CatchRegion:
-    """The catch region of a robot without a preset, from its sampled workspace (`DemoSettings`
-    ``region`` says how). Raises `UserError` when the end effector does not move."""
-    extent = workspace.extent
-    if not extent > MIN_WORKSPACE_EXTENT:
-        raise UserError(
-            f"robot {robot.name!r}: the end effector {robot.site_name!r} stays within "
-            f"{extent:.2g} m over {len(workspace.hand)} postures drawn within the joint limits: "
-            "an empty workspace; expected joints that move it (robot.joints, robot.end_effector)"
-        )
-    spread = np.linalg.norm(workspace.body_pos - workspace.rest_body, axis=-1).max(axis=0)
-    shoulder = int(np.flatnonzero(spread <= SHOULDER_SPREAD * extent)[-1])  # the world: 0
-    centre = workspace.rest_body[shoulder]
-    reach = float(np.linalg.norm(workspace.hand - centre, axis=1).max())
-    ahead = workspace.rest_hand[:2] - centre[:2]
-    front = 0.0
-    if np.linalg.norm(ahead) >= FRONT_MIN_FRACTION * reach:
-        front = round(math.degrees(math.atan2(ahead[1], ahead[0])), 1)
-    return CatchRegion(
-        frame=workspace.chain[shoulder],
-        radius=tuple(round(f * reach, 3) for f in REGION_RADIUS_FRACTION),
-        azimuth_deg=(front - REGION_AZIMUTH_HALF_DEG, front + REGION_AZIMUTH_HALF_DEG),
-        elevation_deg=REGION_ELEVATION_DEG,
-    )
-
-
-def derive_comfort(robot: Robot) -> np.ndarray:
-    """``(J,)`` [rad] the comfortable final posture of a robot without a preset: the rest
-    posture moved into the central `COMFORT_CENTRAL_FRACTION` of each joint's range (away from
-    the limits, Liegeois 1977); a continuous joint at rest."""
-    lower = np.where(robot.continuous, robot.rest, robot.lower)  # finite: no inf - inf
-    upper = np.where(robot.continuous, robot.rest, robot.upper)
-    cut = 0.5 * (1.0 - COMFORT_CENTRAL_FRACTION) * (upper - lower)
-    return np.clip(robot.rest, lower + cut, upper - cut)
-
-
-def derive_posture_std(robot: Robot) -> np.ndarray:
-    """``(J,)`` [rad] per-trial preference noise of a robot without a preset: a fraction
-    `POSTURE_STD_FRACTION` of each joint's range, at most `POSTURE_STD_MAX_DEG`."""
-    span = np.where(robot.continuous, np.inf, robot.upper - robot.lower)
-    return np.minimum(POSTURE_STD_FRACTION * span, math.radians(POSTURE_STD_MAX_DEG))
-
-
-def derive_defaults(robot: Robot, limit_margin_deg: float = 2.0) -> RobotPreset:
-    """The robot-specific defaults of a robot without a preset, as a `RobotPreset` (angles in
-    degrees; `derive_region` on the workspace within the limits shrunk by ``limit_margin_deg``,
-    `derive_comfort`, `derive_posture_std`, `DEFAULT_POSTURE_WEIGHT`)."""
-    names = robot.joint_names
-    workspace = sample_workspace(robot, math.radians(limit_margin_deg))
-    return RobotPreset(
-        region=derive_region(robot, workspace),
-        comfort_deg=dict(zip(names, np.rad2deg(derive_comfort(robot)).tolist())),
-        posture_std_deg=dict(zip(names, np.rad2deg(derive_posture_std(robot)).tolist())),
-        posture_weight={},
-    )
-
-
-def _resolve(robot: Robot, settings: DemoSettings) -> _Resolved:
-    """Fill the robot-specific settings from the robot's preset, or derive them from the robot
-    (`derive_defaults`), and check them against it."""
-    _check_rest(robot, settings)  # first: a range narrower than the margin fails here
-    names = list(robot.joint_names)
-    preset = ROBOT_PRESETS.get(robot.name)
-    derived: list[RobotPreset] = []
-
-    def default(field):
-        if preset is not None:
-            return getattr(preset, field)
-        if not derived:
-            derived.append(derive_defaults(robot, settings.limit_margin_deg))
-        return getattr(derived[0], field)
-
-    def per_joint(field, fallback):  # one value or one per joint in settings; a dict in presets
-        value = getattr(settings, field)
-        if value is None:
-            table = default(field)
-            return np.array([table.get(n, fallback) for n in names], np.float64)
-        if len(value) not in (1, len(names)):
-            raise UserError(
-                f"demos.{field}: expected 1 or {len(names)} values (one per joint), got "
-                f"{len(value)}"
-            )
-        return np.broadcast_to(np.asarray(value, np.float64), (len(names),)).copy()
-
-    region = settings.region if settings.region is not None else default("region")
-    m = robot.mj_model
-    body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, region.frame)
-    if body < 0:
-        bodies = [m.body(i).name for i in range(m.nbody)]
-        raise UserError(
-            f"demos.region.frame: no body named {region.frame!r} in robot {robot.name!r}; "
-            f"bodies: {bodies}"
-        )
-    data = mujoco.MjData(m)
-    data.qpos[robot.qpos_adr] = robot.rest
-    mujoco.mj_kinematics(m, data)
-
-    if settings.comfort_joints is None:
-        comfort_deg = default("comfort_deg")
-    else:
-        comfort_deg = dict(zip(settings.comfort_joints, settings.comfort_deg or ()))
-    comfort = np.array(robot.rest, np.float64)
-    for name, deg in comfort_deg.items():
-        if name not in names:
-            raise UserError(f"demos.comfort_joints: no controlled joint {name!r}; joints: {names}")
-        k = names.index(name)
-        comfort[k] = np.deg2rad(deg)
-        if not robot.lower[k] <= comfort[k] <= robot.upper[k]:
-            raise UserError(
-                f"demos.comfort_deg: joint {name!r} at {deg:g} deg is outside its limits "
-                f"[{math.degrees(robot.lower[k]):.4g}, {math.degrees(robot.upper[k]):.4g}] deg"
-            )
-    posture_std = np.deg2rad(per_joint("posture_std_deg", DEFAULT_POSTURE_STD_DEG))
-    posture_weight = per_joint("posture_weight", DEFAULT_POSTURE_WEIGHT)
-    if preset is not None:
-        source = f"the preset of {robot.name!r}"
-    else:
-        source = "derived from the robot" if derived else "the settings"
-    return _Resolved(region, data.xpos[body].copy(), comfort, posture_std, posture_weight, source)
-
-
-def _check_rest(robot: Robot, settings: DemoSettings) -> None:
-    """Every demonstration starts at rest: a rest posture within ``limit_margin_deg`` of a limit
-    would fail every trial's limit check. Raises `UserError` naming the joint."""
-    margin = np.minimum(robot.rest - robot.lower, robot.upper - robot.rest)
-    need = math.radians(settings.limit_margin_deg) + LIMIT_TOUCH_TOL
-    if np.any(margin <= need):
-        k = int(np.argmin(margin - need))
-        raise UserError(
-            f"demos.limit_margin_deg: the rest posture ({robot.rest_source}) has joint "
-            f"{robot.joint_names[k]!r} at {robot.rest[k]:.4g} rad, {math.degrees(margin[k]):.3g} "
-            f"deg from its limit, within the {settings.limit_margin_deg:g} deg every "
-            "demonstration keeps (they start at rest); expected a smaller demos.limit_margin_deg "
-            "or a rest keyframe inside the limits"
-        )
-
-
-def halton(index: np.ndarray, bases=HALTON_BASES) -> np.ndarray:
-    """Halton points ``(n, len(bases))`` in [0, 1) for integer ``index (n,)`` (radical inverse)."""
-    out = np.zeros((len(index), len(bases)))
-    for d, base in enumerate(bases):
-        i = np.asarray(index, np.int64).copy()
-        f, r = 1.0, np.zeros(len(index))
-        while np.any(i > 0):
-            f /= base
-            r += f * (i % base)
-            i //= base
-        out[:, d] = r
-    return out
-
-
-def region_points(region: CatchRegion, centre, u) -> np.ndarray:
-    """Map ``u (n, 3)`` in [0, 1)^3 to points of the sector with uniform volume density."""
-    r0, r1 = region.radius
-    r = np.cbrt(r0**3 + u[:, 0] * (r1**3 - r0**3))
-    az = np.deg2rad(region.azimuth_deg[0] + u[:, 1] * np.diff(region.azimuth_deg)[0])
-    s0, s1 = np.sin(np.deg2rad(region.elevation_deg))
-    el = np.arcsin(s0 + u[:, 2] * (s1 - s0))
-    direction = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
-    return np.asarray(centre)[None] + r[:, None] * direction
-
-
-def minimum_jerk(w):
-    """Flash & Hogan (1985) position profile ``10 w^3 - 15 w^4 + 6 w^5`` on [0, 1]."""
-    return w**3 * (10.0 - 15.0 * w + 6.0 * w**2)
-
-
-def _spline_matrix(k: int, dtype) -> np.ndarray:
-    """``(K, K)``: node values -> second derivatives of the clamped cubic spline on K even nodes
-    of [0, 1], with end slopes from the 4th-order finite differences of `make_time_grid`."""
-    h = 1.0 / (k - 1)
-    d1 = make_time_grid(k, dtype=np.float64).d1
-    a, rhs = np.zeros((k, k)), np.zeros((k, k))
-    for i in range(1, k - 1):  # M[i-1] + 4 M[i] + M[i+1] = 6 (Q[i-1] - 2 Q[i] + Q[i+1]) / h^2
-        a[i, i - 1 : i + 2] = (1.0, 4.0, 1.0)
-        rhs[i, i - 1 : i + 2] = np.array([1.0, -2.0, 1.0]) * 6.0 / h**2
-    a[0, :2], a[-1, -2:] = (2.0, 1.0), (1.0, 2.0)
-    rhs[0, :2] = np.array([-1.0, 1.0]) * 6.0 / h**2  # 6/h ((Q1 - Q0)/h - Q'(0))
-    rhs[0] -= 6.0 / h * d1[0]
-    rhs[-1, -2:] = np.array([1.0, -1.0]) * 6.0 / h**2  # 6/h (Q'(1) - (Q[-1] - Q[-2])/h)
-    rhs[-1] += 6.0 / h * d1[-1]
-    return np.linalg.solve(a, rhs).astype(dtype)
-
-
-def _spline_eval(second, values, u, u_rest):
-    """Cubic spline through ``values (K, J)`` at even nodes of [0, 1], at ``u (T,)`` -> (T, J).
-
-    ``u_rest = 1 - u``, computed accurately by the caller: near u = 1 (the slow end of a motion)
-    float32 ``u`` has lost the digits that tell neighbouring samples apart.
-    """
-    k = values.shape[0]
-    m = jnp.asarray(second) @ values  # (K, J) second derivatives
-    upper = u > 0.5
-    x, y = u * (k - 1), u_rest * (k - 1)
-    i = jnp.where(upper, k - 2 - jnp.floor(y), jnp.floor(x))
-    i = jnp.clip(i, 0, k - 2).astype(jnp.int32)
-    # local coordinate t in the interval and 1 - t, each from the end it is accurate at
-    t = jnp.where(upper, 1.0 - (y - (k - 2 - i)), x - i)[:, None]
-    omt = jnp.where(upper, y - (k - 2 - i), 1.0 - (x - i))[:, None]
-    h2 = 1.0 / (k - 1) ** 2
-    curve = h2 / 6.0 * ((omt**3 - omt) * m[i] + (t**3 - t) * m[i + 1])
-    step = values[i + 1] - values[i]
-    # offsets from the nearer node: a sample near a node is the node plus a small correction
-    near = jnp.where(t < 0.5, values[i] + t * step, values[i + 1] - omt * step)
-    return near + curve
-
-
-def _shoulder_arc(centre, p0, target, u):
-    """Hand positions ``(P, T, 3)`` around ``centre`` (the shoulder): the direction turns along a
-    great circle (slerp) and the distance changes linearly with progress ``u (P, T, 1)``."""
-    a, b = p0 - centre, target - centre  # (3,), (P, 3)
-    ra, rb = jnp.linalg.norm(a), jnp.linalg.norm(b, axis=-1, keepdims=True)
-    da, db = a / ra, b / rb
-    omega = jnp.arccos(jnp.clip(jnp.sum(da * db, -1, keepdims=True), -1.0, 1.0))
-    omega = jnp.maximum(omega, 1e-6)[:, None]  # (P, 1, 1)
-    direction = (jnp.sin((1.0 - u) * omega) * da + jnp.sin(u * omega) * db[:, None]) / jnp.sin(
-        omega
-    )
-    return centre + (ra + u * (rb[:, None] - ra)) * direction
 
 
 class _Robot(NamedTuple):
@@ -712,7 +202,7 @@ def _simulate(
 
     def hand_path(u):  # progress u (P, K, 1) -> hand positions (P, K, 3)
         line = p0 + u * travel[:, None]
-        arc = _shoulder_arc(rob.centre, p0, target, u)
+        arc = shoulder_arc(rob.centre, p0, target, u)
         return (1.0 - prm.arc_blend) * line + prm.arc_blend * arc + 4.0 * u * (1.0 - u) * bend
 
     lo_ik, hi_ik = rob.lower + prm.limit_margin, rob.upper - prm.limit_margin
@@ -740,7 +230,7 @@ def _simulate(
     s, s_rest = jnp.asarray(s64, dtype)[None], jnp.asarray(1.0 - s64, dtype)[None]
     w, w_rest = s + asym[:, None] * s * s_rest, s_rest * (1.0 - asym[:, None] * s)  # w, 1 - w
     u, u_rest = minimum_jerk(w), minimum_jerk(w_rest)  # 1 - mj(w) = mj(1 - w), accurate near 1
-    spline = functools.partial(_spline_eval, _spline_matrix(samples, dtype))
+    spline = functools.partial(spline_eval, spline_matrix(samples, dtype))
     q = jax.vmap(spline)(q_nodes, u, u_rest)
     hand = jax.vmap(jax.vmap(lambda qq: dyn.site_pose(qq)[0]))(q)
     track_error = jnp.max(jnp.linalg.norm(hand - hand_path(u[..., None]), axis=-1), axis=1)
@@ -796,7 +286,7 @@ def _checks(trials: _Trials, settings: DemoSettings) -> _Checks:
 
 
 def _failure(
-    robot: Robot, settings: DemoSettings, res: _Resolved, checks: _Checks, targets, n_valid
+    robot: Robot, settings: DemoSettings, res: Resolved, checks: _Checks, targets, n_valid
 ) -> str:
     """Why too few candidates passed: each cause with its count and figures, and what to change
     for the commonest one. ``targets (P, 3)``: the catch points of ``checks``' P trials."""
@@ -877,7 +367,7 @@ def generate_demonstrations(
     """
     t_start = time.perf_counter()
     key = jax.random.key(settings.seed) if key is None else key
-    res = _resolve(robot, settings)
+    res = resolve_settings(robot, settings)
     dtype = np.dtype(dyn.dtype)
     shift, round_keys = _shift_and_round_keys(key, settings.max_rounds)
     shift = np.asarray(shift, np.float64)

@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 
 from evojax_motion.model.robot import Robot, robot_from_mjcf_text
-from evojax_motion.settings.online import BALL_RADIUS  # [m], the simulated ball's too
+
 BALL_RGBA = (1.0, 0.55, 0.0, 1.0)
 
 

@@ -1,8 +1,9 @@
-"""``evojax-motion import``: real human demonstrations -> a movement primitive database.
+"""Importing real human demonstrations: recordings -> a movement primitive database.
 
 Park et al. (2008, sec. 4.1) build their initial database from captured human motions turned
-into joint trajectories by IK. This command does that for recordings in common formats and any
-robot model:
+into joint trajectories by IK. `import_trials` does that for recordings in common formats and any
+robot model; the ``evojax-motion import`` command (`cli.importing`) runs it and writes the
+database:
 
     evojax-motion import --format vicon-csv --robot mahru_arm --out demos.npz DATA_DIR
 
@@ -11,204 +12,44 @@ Per trial: read (`vicon_csv`, `c3d_file`, `bvh`, `asf_amc`, `angles_csv`), fill 
 relative to the person's shoulder (``--reference``) in a frame that turns with the trunk, scale
 them to the robot's reach and solve the key-point IK for every frame (`retarget`, one jit for all
 trials), keep continuous joints on the rest posture's 2 pi branch (`motion.angles.on_rest_branch`),
-cut
-the movement at hand-speed onset/offset, resample to ``--samples`` T, and take the final hand
+cut the movement at hand-speed onset/offset, resample to ``--samples`` T, and take the final hand
 position as the condition. Joint-angle CSV files skip the IK (columns map to joints).
 
 A trial that cannot be imported (unreadable or truncated file, a required marker missing, a gap
 longer than ``--max-gap``, no movement, IK error above ``--max-rms``) is skipped with its reason and
 its figure (e.g. ``IK error: key-point RMS 61 mm > --max-rms 50 mm; largest 89 mm at frame 312
-(3.12 s, wrist)``), and the others are imported. Exit status: 0 every trial imported; 1 some
-trials skipped (the others are saved); 2 a user error (bad option, no input, no trial
-importable): nothing is written. The database is written atomically
-(`motion.database.save_database`).
+(3.12 s, wrist)``), and the others are imported (`import_report.ImportResult`). The options are an
+`import_params.ImportParams`.
 """
 
 from __future__ import annotations
 
-import argparse
 import functools
-import json
 import math
 import sys
 import time
-from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from evojax_motion.demonstrations.mocap import calibration as cal
+from evojax_motion.demonstrations.mocap import frames as fr
 from evojax_motion.demonstrations.mocap import markers as mk
+from evojax_motion.demonstrations.mocap.import_params import (
+    DEFAULT_MARKER_MODEL,
+    EXTENSIONS,
+    REFERENCES,
+    ImportParams,
+)
+from evojax_motion.demonstrations.mocap.import_report import ImportResult, TrialReport
 from evojax_motion.demonstrations.mocap.markers import MarkerData, TrialError
 from evojax_motion.errors import UserError
 from evojax_motion.motion.angles import on_rest_branch
+from evojax_motion.settings.demonstrations import IKSettings
 
-FORMATS = ("vicon-csv", "c3d", "bvh", "asf-amc", "angles-csv")
-REFERENCES = ("shoulder", "lab")  # --reference, besides a marker or key point name
-DEFAULT_MARKER_MODEL = {
-    "vicon-csv": "ue_adl",
-    "c3d": "ue_adl",
-    "bvh": "cmu_bvh",
-    "asf-amc": "cmu_asf",
-}
-EXTENSIONS = {
-    "vicon-csv": ".csv",
-    "c3d": ".c3d",
-    "bvh": ".bvh",
-    "asf-amc": ".amc",
-    "angles-csv": ".csv",
-}
-EXIT_OK, EXIT_SKIPPED, EXIT_USER_ERROR = 0, 1, 2
 PAD_FRAMES = 64  # frame counts are padded to a multiple of this: few distinct jit shapes
-
-
-@dataclass(frozen=True)
-class ImportParams:
-    """Options of the import (the CLI's flags; see `add_import_parser` for their help)."""
-
-    format: str
-    paths: tuple[str, ...]
-    out: str | None = None
-    robot: str = "mahru_arm"
-    joints: tuple[str, ...] | None = None
-    site: str | None = None
-    keypoints: str | Mapping[str, str] | None = None  # "body:x=shoulder,..." or a mapping
-    reference: str = "shoulder"  # shoulder | lab | a marker or key point name
-    marker_model: str | None = None
-    static: str | None = None
-    skeleton: str | None = None
-    samples: int = 100
-    max_gap: int = 20
-    cutoff_hz: float | None = 6.0
-    onset_threshold: float = 0.05
-    min_peak_speed: float = 0.05
-    min_duration: float = 0.2
-    max_rms: float = 0.05
-    limit_margin_deg: float = 1.0
-    rate: float | None = None
-    angle_unit: str = "deg"
-    angle_map: str | None = None
-    unit_scale: float | None = None
-    smooth: float = 1e-3
-    weights: str | Mapping[str, float] | None = None  # "shoulder=0,..." or a mapping
-    ik_iters: int = 4
-    chunk: int = 32
-    capacity: int | None = None
-    description: str | None = None
-    report: str | None = None
-    force: bool = False
-    quiet: bool = False
-
-    def __post_init__(self):
-        def need(ok, msg):
-            if not ok:
-                raise UserError(msg)
-
-        need(self.format in FORMATS, f"--format: expected one of {FORMATS}, got {self.format!r}")
-        need(len(self.paths) > 0, "import: expected at least one input PATH")
-        need(self.samples >= 8, f"--samples: expected an integer >= 8, got {self.samples}")
-        need(self.max_gap >= 0, f"--max-gap: expected frames >= 0, got {self.max_gap}")
-        need(0 < self.onset_threshold < 1, "--onset-threshold: expected a fraction in (0, 1)")
-        need(self.max_rms > 0, "--max-rms: expected metres > 0")
-        need(self.min_duration >= 0, "--min-duration: expected seconds >= 0")
-        need(self.limit_margin_deg >= 0, "--limit-margin-deg: expected degrees >= 0")
-        need(self.rate is None or self.rate > 0, "--rate: expected Hz > 0")
-        need(self.cutoff_hz is None or self.cutoff_hz >= 0, "--cutoff-hz: expected Hz >= 0")
-        need(self.angle_unit in ("deg", "rad"), "--angle-unit: expected deg or rad")
-        need(self.chunk >= 1 and self.ik_iters >= 1, "--chunk and --ik-iters: expected >= 1")
-        need(self.unit_scale is None or self.unit_scale > 0, "--unit-scale: expected > 0")
-        need(
-            isinstance(self.reference, str) and self.reference.strip() != "",
-            f"--reference: expected {' or '.join(REFERENCES)} or a marker name, "
-            f"got {self.reference!r}",
-        )
-        need(
-            self.capacity is None or self.capacity >= 1,
-            f"--capacity: expected an integer >= 1, got {self.capacity}",
-        )
-        if self.out is not None:
-            need(str(self.out).endswith(".npz"), f"--out {self.out}: expected a path ending .npz")
-
-
-@dataclass
-class TrialReport:
-    """What happened to one trial (one row of the report)."""
-
-    name: str
-    path: str
-    status: str = "skipped"  # imported | skipped
-    reason: str = ""
-    frames: int = 0  # frames read
-    rate: float = 0.0  # [Hz]
-    frames_filled: int = 0  # frames with an interpolated marker
-    frames_trimmed: int = 0  # frames cut at the ends (a needed marker not seen)
-    onset_s: float = math.nan
-    duration_s: float = math.nan
-    peak_hand_speed: float = math.nan  # [m/s] human hand (robot hand for angle files)
-    heading: str = ""  # what turns the body frame with the person (markers, shoulder line...)
-    lift_m: float = 0.0  # [m] targets raised to keep the hand above the robot's base
-    hand_target_box: list = field(default_factory=list)  # [[x, y, z] min, max] over the movement
-    rms_error_m: float = math.nan  # key-point RMS over the movement, after scaling
-    max_error_m: float = math.nan
-    keypoint_rms_m: dict = field(default_factory=dict)
-    limit_frames: int = 0  # movement frames with a joint on a limit (clipped by the IK)
-    limit_joints: list = field(default_factory=list)
-    segment_scale: list = field(default_factory=list)  # robot / human segment lengths
-    condition: list = field(default_factory=list)  # final hand position [m]
-
-
-_SKIP_CATEGORIES = (  # (words in the reason, category), first match wins
-    (("unreadable", "truncated", "cannot read", "not a "), "unreadable file"),
-    (("static trial", "calibration"), "calibration"),
-    (("missing", "never seen"), "marker missing"),
-    (("gap of",), "gap too long"),
-    (("no movement",), "no movement"),
-    (("too short",), "movement too short"),
-    (("key-point RMS", "IK "), "IK error too large"),
-)
-
-
-def skip_category(reason: str) -> str:
-    """A skipped trial's reason grouped for the summary (``"gap too long"``, ...)."""
-    for words, category in _SKIP_CATEGORIES:
-        if any(w in reason for w in words):
-            return category
-    return "other"
-
-
-class ImportResult:
-    """Outcome of `import_trials`: the database (None if no trial survived) and the reports."""
-
-    def __init__(self, db, meta, reports: list[TrialReport], timing: dict):
-        self.db, self.meta, self.reports, self.timing = db, meta, reports, timing
-
-    @property
-    def imported(self) -> list[TrialReport]:
-        return [r for r in self.reports if r.status == "imported"]
-
-    @property
-    def skipped(self) -> list[TrialReport]:
-        return [r for r in self.reports if r.status != "imported"]
-
-    def summary(self) -> dict:
-        rms = np.array([r.rms_error_m for r in self.imported if np.isfinite(r.rms_error_m)])
-        reasons: dict[str, int] = {}
-        for r in self.skipped:
-            key = skip_category(r.reason)
-            reasons[key] = reasons.get(key, 0) + 1
-        return {
-            "trials": len(self.reports),
-            "imported": len(self.imported),
-            "skipped": len(self.skipped),
-            "skipped_reasons": reasons,
-            "rms_error_median_m": float(np.median(rms)) if rms.size else None,
-            "rms_error_p95_m": float(np.percentile(rms, 95)) if rms.size else None,
-            "rms_error_max_m": float(rms.max()) if rms.size else None,
-            "frames_filled": int(sum(r.frames_filled for r in self.reports)),
-            "trials_touching_limits": int(sum(r.limit_frames > 0 for r in self.imported)),
-            "timing_s": self.timing,
-        }
 
 
 # ------------------------------------------------------------------------------ input discovery
@@ -410,7 +251,7 @@ def import_trials(params: ImportParams) -> ImportResult:
         base_z = rt.base_height(robot) if kp.weights[0] == 0 else None
         prepared = _prepare_markers(params, model, kp, rest_points, base_z, files, reports)
         t_ik = time.perf_counter()
-        settings = rt.IKSettings(smooth=params.smooth, iters=params.ik_iters)
+        settings = IKSettings(smooth=params.smooth, iters=params.ik_iters)
         prepared_q = _solve(params, robot, dyn, kp, settings, prepared, lower, upper, rest_clipped)
         ik_s = time.perf_counter() - t_ik
 
@@ -480,7 +321,7 @@ def _prepare_markers(params, model, kp, rest_points, base_z, files, reports) -> 
         key = str(static) if static is not None else ("folder", str(files[i].parent))
         groups.setdefault(key, []).append(i)
         statics[key] = static
-    calibs: dict[int, mk.Calibration | TrialError | None] = {}
+    calibs: dict[int, cal.Calibration | TrialError | None] = {}
     needs_calibration = any(kd.between is not None or kd.cluster for kd in model.keypoints.values())
     for key, members in groups.items():
         static_data = None
@@ -492,10 +333,10 @@ def _prepare_markers(params, model, kp, rest_points, base_z, files, reports) -> 
                 for i in members:
                     calibs[i] = TrialError(f"static trial {static.name}: {e}")
                 continue
-        c: mk.Calibration | TrialError | None = None
+        c: cal.Calibration | TrialError | None = None
         try:
             if needs_calibration:
-                c = mk.calibrate(model, static_data, [data[i] for i in members])
+                c = cal.calibrate(model, static_data, [data[i] for i in members])
         except TrialError as e:
             c = TrialError(f"calibration: {e}")
         for i in members:
@@ -509,7 +350,7 @@ def _prepare_markers(params, model, kp, rest_points, base_z, files, reports) -> 
             calib = calibs[i]
             if isinstance(calib, TrialError):
                 raise calib
-            needed = mk.needed_markers(d, model, calib)
+            needed = cal.needed_markers(d, model, calib)
             ref_marker = _reference_marker(params.reference, model, d)
             if ref_marker is not None and ref_marker not in needed:
                 needed.append(ref_marker)
@@ -520,7 +361,7 @@ def _prepare_markers(params, model, kp, rest_points, base_z, files, reports) -> 
             )
             needed += _filled_heading_markers(d, model, params.max_gap)
             d = d._replace(positions=_filter_needed(d, needed, params.cutoff_hz))
-            points = mk.keypoints(d, model, calib)
+            points = cal.keypoints(d, model, calib)
             up = up_override if up_override is not None else d.up
             human, moving = _body_coordinates(
                 params.reference, model, d, points, kp.human, up, forward, r
@@ -585,9 +426,9 @@ def _body_coordinates(
     """
     hand = points[humans[-1]]
     if reference == "lab":
-        origin, heading = None, mk.Heading(None, None, "fixed (--reference lab)")
+        origin, heading = None, fr.Heading(None, None, "fixed (--reference lab)")
     else:
-        heading = mk.heading_direction(d, points, model)
+        heading = fr.heading_direction(d, points, model)
         if reference == "shoulder":
             origin = points[next(k for k in mk.KEYPOINT_CHAIN if k in points)]
         elif reference in points:
@@ -595,7 +436,7 @@ def _body_coordinates(
         else:
             origin = d.get(reference)
     report.heading = heading.source
-    origin, rot = mk.body_frames(points, up, forward, origin, heading.direction)
+    origin, rot = fr.body_frames(points, up, forward, origin, heading.direction)
     human = np.stack([np.einsum("fij,fj->fi", rot, points[h] - origin) for h in humans], axis=1)
     bad = ~np.isfinite(human).all(axis=-1)
     if bad.any():
@@ -702,184 +543,3 @@ def _prepare_angles(params, robot, dyn, files, reports, lower, upper):
 
 
 # ------------------------------------------------------------------------------------ reporting
-
-
-def format_report(result: ImportResult) -> str:
-    """The per-trial table and the summary, as printed by the command."""
-    lines = [
-        f"{'trial':<28} {'status':<8} {'frames':>6} {'filled':>6} {'dur s':>6} "
-        f"{'rms mm':>7} {'max mm':>7} {'limit%':>6}  reason"
-    ]
-    for r in result.reports:
-        dur = f"{r.duration_s:.2f}" if np.isfinite(r.duration_s) else "-"
-        rms = f"{1e3 * r.rms_error_m:.1f}" if np.isfinite(r.rms_error_m) else "-"
-        mx = f"{1e3 * r.max_error_m:.1f}" if np.isfinite(r.max_error_m) else "-"
-        n_mv = round(r.duration_s * r.rate) + 1 if np.isfinite(r.duration_s) else 0
-        lim = f"{100 * r.limit_frames / n_mv:.0f}" if n_mv else "-"
-        lines.append(
-            f"{r.name[:28]:<28} {r.status:<8} {r.frames:>6} {r.frames_filled:>6} "
-            f"{dur:>6} {rms:>7} {mx:>7} {lim:>6}  {r.reason}"
-        )
-    s = result.summary()
-    lines.append("")
-    lines.append(
-        f"imported {s['imported']} of {s['trials']} trials"
-        + (f"; skipped {s['skipped']}: {s['skipped_reasons']}" if s["skipped"] else "")
-    )
-    if s["rms_error_median_m"] is not None:
-        lines.append(
-            f"key-point RMS error after scaling: median {1e3 * s['rms_error_median_m']:.1f} mm, "
-            f"p95 {1e3 * s['rms_error_p95_m']:.1f} mm, max {1e3 * s['rms_error_max_m']:.1f} mm"
-        )
-    lines.append(
-        f"trials with a joint on a limit: {s['trials_touching_limits']}; "
-        f"frames with filled markers: {s['frames_filled']}; time {s['timing_s']}"
-    )
-    return "\n".join(lines)
-
-
-def report_dict(result: ImportResult, params: ImportParams) -> dict:
-    """JSON-ready report: options, summary and one entry per trial."""
-
-    def clean(x):
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        return x
-
-    return clean(
-        {
-            "params": {
-                k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(params).items()
-            },
-            "summary": result.summary(),
-            "trials": [asdict(r) for r in result.reports],
-        }
-    )
-
-
-# -------------------------------------------------------------------------------------------- CLI
-
-
-def add_import_parser(subparsers) -> argparse.ArgumentParser:
-    """Add the ``import`` subcommand to an ``argparse`` subparsers object; sets ``func``.
-
-    Option defaults are those of `ImportParams` (one source of truth for the CLI and the API).
-    """
-    p = subparsers.add_parser(
-        "import",
-        help="import real human demonstrations (motion capture) retargeted to a robot",
-        description=(
-            "Import motion-capture trials, retarget them to a robot by batched key-point IK and "
-            "write a primitive database (docs/importing.md). Exit status: 0 all trials imported, "
-            "1 some trials skipped (the others are written), 2 user error (nothing written)."
-        ),
-    )
-    defaults = {f.name: f.default for f in fields(ImportParams)}
-
-    def opt(flag, help, **kw):
-        name = flag.lstrip("-").replace("-", "_")
-        if defaults.get(name) is not None and not isinstance(defaults[name], bool):
-            help += f" (default: {defaults[name]})"
-        p.add_argument(flag, help=help, default=None, **kw)
-
-    p.add_argument("paths", nargs="+", metavar="PATH", help="trial files or folders")
-    p.add_argument("--format", required=True, choices=FORMATS, help="input format")
-    p.add_argument("--out", required=True, help="output database .npz")
-    opt("--robot", "shipped robot name or MJCF path")
-    opt("--joints", "controlled joints of an MJCF, comma-separated")
-    opt("--site", "end-effector site (or body) of an MJCF (default: its only site)")
-    opt(
-        "--keypoints",
-        "robot point=human key point, e.g. body:upper_arm=shoulder,"
-        "body:forearm=elbow,body:hand=wrist,site:hand=hand (default: per robot)",
-    )
-    opt(
-        "--weights",
-        "IK weight per key point, e.g. shoulder=0,elbow=0.5 (default: 1 where the robot's upper "
-        "arm can hang as a person's, else hand=1 and 0 for the others)",
-    )
-    opt(
-        "--reference",
-        "origin of the human key points in every frame: shoulder, lab (frame 0's shoulder, "
-        "fixed in the room), or a marker or key point name (e.g. STRN, thorax)",
-    )
-    opt(
-        "--marker-model",
-        f"built-in {sorted(mk.MARKER_MODELS)} or a YAML file (default: per format)",
-    )
-    opt("--static", "static calibration trial for every trial (default: *static* beside it)")
-    opt("--skeleton", "ASF skeleton of the AMC files (default: the .asf beside them)")
-    opt("--samples", "samples T per primitive", type=int)
-    opt("--max-gap", "longest marker gap filled by interpolation [frames]", type=int)
-    opt("--cutoff-hz", "low-pass cut-off [Hz], 0: none", type=float)
-    opt(
-        "--onset-threshold", "movement onset/offset at this fraction of peak hand speed", type=float
-    )
-    opt("--min-peak-speed", "skip trials whose hand never moves faster [m/s]", type=float)
-    opt("--min-duration", "skip movements shorter than this [s]", type=float)
-    opt("--max-rms", "skip trials whose key-point RMS error exceeds this [m]", type=float)
-    opt("--limit-margin-deg", "keep joints this far inside their limits [deg]", type=float)
-    opt(
-        "--rate",
-        "frame rate [Hz] of angle files without a time column and of AMC files",
-        type=float,
-    )
-    opt("--angle-unit", "unit of angle files", choices=("deg", "rad"))
-    opt("--angle-map", "YAML robot_joint -> column for angles-csv")
-    opt("--unit-scale", "metres per file unit (BVH default 0.01, ASF from :units)", type=float)
-    opt("--ik-iters", "Levenberg-Marquardt iterations per frame", type=int)
-    opt("--chunk", "trials per IK batch (memory vs. compile time)", type=int)
-    opt("--capacity", "database capacity (>= trials; empty slots for evolution)", type=int)
-    opt("--description", "description stored in the database")
-    opt("--report", "also write the per-trial report as JSON here")
-    p.add_argument("--force", action="store_true", help="overwrite --out")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=run_import)
-    return p
-
-
-def _params_from(args) -> ImportParams:
-    if isinstance(args, ImportParams):
-        return args
-    src = vars(args) if isinstance(args, argparse.Namespace) else dict(args)
-    names = {f.name for f in fields(ImportParams)}
-    kw = {k: v for k, v in src.items() if k in names and v is not None}
-    for key in ("joints",):
-        if isinstance(kw.get(key), str):
-            kw[key] = tuple(s.strip() for s in kw[key].split(",") if s.strip())
-    if "paths" in kw:
-        kw["paths"] = tuple(map(str, kw["paths"]))
-    if kw.get("cutoff_hz") == 0:
-        kw["cutoff_hz"] = None
-    try:
-        return ImportParams(**kw)
-    except TypeError as e:
-        raise UserError(f"import: {e}") from None
-
-
-def run_import(args) -> int:
-    """The ``import`` command: an ``argparse.Namespace``, a mapping or `ImportParams` in, exit
-    status out (0 all imported, 1 some skipped, 2 user error, raised as `UserError`)."""
-    params = _params_from(args)
-    if params.out is None:
-        raise UserError("import: --out is required")
-    out = Path(params.out)
-    if out.exists() and not params.force:
-        raise UserError(f"{out}: already exists (pass --force to overwrite)")
-    result = import_trials(params)
-    print(format_report(result))
-    if result.db is None:
-        reasons = "; ".join(f"{r.name}: {r.reason}" for r in result.reports[:5])
-        raise UserError(f"import: no trial could be imported ({reasons})")
-    from evojax_motion.motion.database import save_database
-    from evojax_motion.run.atomic import atomic_write_text
-
-    save_database(out, result.db, result.meta)
-    if params.report:
-        atomic_write_text(Path(params.report), json.dumps(report_dict(result, params), indent=1))
-    print(f"written to {out}")
-    return EXIT_SKIPPED if result.skipped else EXIT_OK

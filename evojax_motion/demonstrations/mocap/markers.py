@@ -1,9 +1,9 @@
 """Human key points (shoulder, elbow, wrist, hand) from labelled 3-D points of a recording.
 
 Park et al. (2008, sec. 2 and 4.1) turn motion-capture markers into joint trajectories with an IK
-solver; this module prepares that solver's targets. Every position reader (Vicon CSV, C3D, BVH,
-ASF/AMC) returns a `MarkerData`: named points ``(F, M, 3)`` [m], NaN where a marker was not seen.
-From it:
+solver; this module and the two beside it (`calibration`, `frames`) prepare that solver's targets.
+Every position reader (Vicon CSV, C3D, BVH, ASF/AMC) returns a `MarkerData`: named points
+``(F, M, 3)`` [m], NaN where a marker was not seen. From it:
 
 1. `fill_gaps`: interior gaps of a marker up to ``max_gap`` frames are filled by a cubic spline
    through the frames that were seen; longer gaps make the trial fail (`TrialError`); frames at the
@@ -14,17 +14,17 @@ From it:
    landmark seen only in the static calibration trial and carried by a rigid marker cluster
    (``markers`` + ``cluster``: the cluster's least-squares rigid motion, Soderkvist & Wedin 1993,
    moves the landmark), or a functional joint centre between two clusters (``between``: the point
-   that moves rigidly with both, SCoRE, Ehrig et al. 2006).
-4. `body_frames`: the trial's points in a frame that moves with the person, x forward, y left,
-   z up (the robot's world convention): its origin is the shoulder (or another reference point) in
-   every frame, its heading that of the trunk (`heading_direction`: two trunk markers, else the
-   right-left shoulder line), turned about the vertical. A person who steps, walks or turns keeps
-   the same arm motion in it.
+   that moves rigidly with both, SCoRE, Ehrig et al. 2006); `calibration.calibrate` and
+   `calibration.keypoints` build them. The built-in models are `MARKER_MODELS`.
+4. `frames.body_frames`: the trial's points in a frame that moves with the person, x forward,
+   y left, z up (the robot's world convention): its origin is the shoulder (or another reference
+   point) in every frame, its heading that of the trunk (`frames.heading_direction`: two trunk
+   markers, else the right-left shoulder line), turned about the vertical. A person who steps,
+   walks or turns keeps the same arm motion in it.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,9 +37,7 @@ from evojax_motion.errors import UserError
 
 KEYPOINT_CHAIN = ("shoulder", "elbow", "wrist", "hand")  # proximal to distal: the scaled segments
 LEFT_SHOULDER = "left_shoulder"  # used only for the body frame's lateral axis
-MIN_HEADING = 1e-3  # [m] a horizontal heading vector shorter than this tells no direction
 MIN_CLUSTER_MARKERS = 3  # a rigid motion needs three non-collinear points
-SCORE_RCOND = 1e-3  # singular values below this fraction of the largest: direction undetermined
 
 
 class TrialError(Exception):
@@ -173,28 +171,6 @@ def lowpass(x: np.ndarray, rate: float, cutoff_hz: float | None, order: int = 4)
     return filtfilt(b, a, x, axis=0, padlen=padlen)
 
 
-# ---------------------------------------------------------------------------------- rigid clusters
-
-
-def rigid_motion(ref: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid motion ``cur ~ R @ ref + d`` of a marker cluster (Kabsch / SVD).
-
-    ref: (k, 3) reference positions; cur: (F, k, 3). Returns ``R (F, 3, 3)``, ``d (F, 3)``.
-    """
-    cr = ref.mean(axis=0)
-    cc = cur.mean(axis=1)
-    h = np.einsum("ki,fkj->fij", ref - cr, cur - cc[:, None, :])  # (F, 3, 3) cross-covariance
-    u, _, vt = np.linalg.svd(h)
-    v = np.swapaxes(vt, -1, -2)
-    ut = np.swapaxes(u, -1, -2)
-    sign = np.sign(np.linalg.det(v @ ut))  # exclude reflections
-    diag = np.ones((cur.shape[0], 3))
-    diag[:, 2] = sign
-    rot = v @ (diag[:, :, None] * ut)
-    d = cc - np.einsum("fij,j->fi", rot, cr)
-    return rot, d
-
-
 # --------------------------------------------------------------------------------- marker models
 
 
@@ -225,7 +201,8 @@ class MarkerModel:
 
     heading: two groups of markers fixed to the trunk (or pelvis); the horizontal direction from
     the first group's mean to the second's turns with the person and turns the body frame in
-    every frame (`heading_direction`). None, or markers missing from a trial: the shoulder line.
+    every frame (`frames.heading_direction`). None, or markers missing from a trial: the shoulder
+    line.
     """
 
     name: str
@@ -407,273 +384,3 @@ def load_marker_model(spec: str | MarkerModel) -> MarkerModel:
     except (OSError, yaml.YAMLError) as e:
         raise UserError(f"{path}: cannot read the marker model: {e}") from None
     return marker_model_from_dict(data, str(path))
-
-
-# ------------------------------------------------------------------------------- calibration
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """Per-subject calibration: reference cluster shapes and points carried by them.
-
-    clusters: cluster (marker names) -> (k, 3) reference positions [m].
-    landmarks: key point name -> (cluster, (3,) position in the reference frame of the cluster).
-    joint_centres: key point name -> (3,) centre in the reference frame of its first cluster.
-    source: the static trial (or first moving trial) the references come from.
-    """
-
-    clusters: Mapping[tuple[str, ...], np.ndarray]
-    landmarks: Mapping[str, tuple[tuple[str, ...], np.ndarray]]
-    joint_centres: Mapping[str, np.ndarray]
-    residual: Mapping[str, float]  # RMS mismatch of a joint centre between its clusters [m]
-    source: str
-
-
-def _mean_seen(data: MarkerData, names: Sequence[str]) -> np.ndarray | None:
-    """(k, 3) mean positions over the frames where all ``names`` are seen; None if never."""
-    if not all(n in data.names for n in names):
-        return None
-    p = data.positions[:, [data.column(n) for n in names]]
-    ok = np.isfinite(p).all(axis=(1, 2))
-    return p[ok].mean(axis=0) if ok.any() else None
-
-
-def calibrate(
-    model: MarkerModel, static: MarkerData | None, moving: Sequence[MarkerData]
-) -> Calibration:
-    """Reference clusters, landmarks and functional joint centres of one subject.
-
-    References come from the static trial (mean over its frames) or, without one, from the first
-    moving trial's first complete frame. Landmarks need the static trial. A functional centre
-    solves, over every frame ``t`` of the moving trials (and the static trial),
-    ``R_a(t) c_a + d_a(t) = R_b(t) c_b + d_b(t)`` for ``c_a``, ``c_b`` in the least-squares sense
-    (SCoRE); directions the motion leaves undetermined fall back to the midpoint of the clusters.
-    Raises `TrialError` when a cluster is never seen.
-    """
-    clusters: dict[tuple[str, ...], np.ndarray] = {}
-    ref_source = static.source if static is not None else (moving[0].source if moving else "")
-
-    def reference(names: tuple[str, ...]) -> np.ndarray:
-        if names not in clusters:
-            r = _mean_seen(static, names) if static is not None else None
-            for m in moving:
-                if r is not None:
-                    break
-                if all(n in m.names for n in names):
-                    p = m.positions[:, [m.column(n) for n in names]]
-                    ok = np.flatnonzero(np.isfinite(p).all(axis=(1, 2)))
-                    r = p[ok[0]] if ok.size else None
-            if r is None:
-                raise TrialError(f"cluster {list(names)} is never seen")
-            clusters[names] = r
-        return clusters[names]
-
-    landmarks, centres, residual = {}, {}, {}
-    for name, kp in model.keypoints.items():
-        if kp.between is not None:
-            a, b = kp.between
-            ra, rb = reference(a), reference(b)
-            centres[name], residual[name] = _functional_centre(
-                ra, rb, a, b, [*([static] if static is not None else []), *moving]
-            )
-        elif kp.cluster:
-            lm = _mean_seen(static, kp.markers) if static is not None else None
-            if lm is not None:
-                reference(kp.cluster)
-                landmarks[name] = (kp.cluster, lm.mean(axis=0))
-    return Calibration(clusters, landmarks, centres, residual, ref_source)
-
-
-def _cluster_frames(data: MarkerData, names: Sequence[str]) -> np.ndarray:
-    p = data.positions[:, [data.column(n) for n in names]]
-    return p
-
-
-def _functional_centre(ra, rb, a, b, trials: Sequence[MarkerData]) -> tuple[np.ndarray, float]:
-    """SCoRE centre of clusters ``a``/``b`` (reference shapes ``ra``/``rb``) over ``trials``."""
-    rows, rhs = [], []
-    for t in trials:
-        if not all(n in t.names for n in (*a, *b)):
-            continue
-        pa, pb = _cluster_frames(t, a), _cluster_frames(t, b)
-        ok = np.isfinite(pa).all(axis=(1, 2)) & np.isfinite(pb).all(axis=(1, 2))
-        if ok.sum() < 2:
-            continue
-        rot_a, da = rigid_motion(ra, pa[ok])
-        rot_b, db = rigid_motion(rb, pb[ok])
-        rows.append(np.concatenate([rot_a, -rot_b], axis=2).reshape(-1, 6))
-        rhs.append((db - da).reshape(-1))
-    if not rows:
-        raise TrialError(f"clusters {list(a)} and {list(b)} are never seen together")
-    m, y = np.concatenate(rows), np.concatenate(rhs)
-    prior = 0.5 * (ra.mean(axis=0) + rb.mean(axis=0))
-    x0 = np.concatenate([prior, prior])
-    delta, *_ = np.linalg.lstsq(m, y - m @ x0, rcond=SCORE_RCOND)
-    x = x0 + delta
-    res = (m @ x - y).reshape(-1, 3)
-    return x[:3], float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-
-
-def keypoints(
-    data: MarkerData, model: MarkerModel, calib: Calibration | None
-) -> dict[str, np.ndarray]:
-    """Key point trajectories ``name -> (F, 3)`` [m] of a gap-filled trial.
-
-    Raises `TrialError` naming the first marker that is missing and cannot be reconstructed.
-    """
-    out = {}
-    for name, kp in model.keypoints.items():
-        if kp.between is not None:
-            if calib is None or name not in calib.joint_centres:
-                raise TrialError(f"{name}: no calibration for the functional joint centre")
-            a = kp.between[0]
-            missing = [m for m in a if not data.has(m)]
-            if missing:
-                raise TrialError(f"required marker {missing[0]} missing ({name})")
-            rot, d = rigid_motion(calib.clusters[a], _cluster_frames(data, a))
-            out[name] = np.einsum("fij,j->fi", rot, calib.joint_centres[name]) + d
-            continue
-        missing = [m for m in kp.markers if not data.has(m)]
-        if not missing:
-            out[name] = np.mean([data.get(m) for m in kp.markers], axis=0)
-            continue
-        if not kp.cluster:
-            raise TrialError(f"required marker {missing[0]} missing ({name})")
-        if calib is None or name not in calib.landmarks:
-            raise TrialError(
-                f"required marker {missing[0]} missing ({name}) and no static trial holds it"
-            )
-        lost = [m for m in kp.cluster if not data.has(m)]
-        if lost:
-            raise TrialError(f"required marker {lost[0]} missing ({name} cluster)")
-        cluster, point = calib.landmarks[name]
-        rot, d = rigid_motion(calib.clusters[cluster], _cluster_frames(data, cluster))
-        out[name] = np.einsum("fij,j->fi", rot, point) + d
-    return out
-
-
-def needed_markers(data: MarkerData, model: MarkerModel, calib: Calibration | None) -> list[str]:
-    """The markers of ``data`` that the key points will read (gap filling applies to these)."""
-    names: list[str] = []
-    for name, kp in model.keypoints.items():
-        if kp.between is not None:
-            use = kp.between[0]
-        elif all(data.has(m) for m in kp.markers) or not kp.cluster:
-            use = kp.markers
-        elif calib is not None and name in calib.landmarks:
-            use = kp.cluster
-        else:
-            use = kp.markers
-        names.extend(m for m in use if m not in names)
-    missing = [m for m in names if m not in data.names or not data.has(m)]
-    if missing:
-        raise TrialError(f"required marker {missing[0]} missing")
-    return names
-
-
-def body_frame(
-    points: Mapping[str, np.ndarray], up: np.ndarray, forward: np.ndarray | None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Trunk frame of a trial's first frame: ``(origin (3,), rot (3, 3))``; ``rot @ (p - origin)``
-    gives coordinates x forward, y left, z up. Origin: the shoulder (or first key point)."""
-    first = next(k for k in KEYPOINT_CHAIN if k in points)
-    origin = points[first][0]
-    up = up / np.linalg.norm(up)
-    if forward is None:
-        right = points[first][0] - points[LEFT_SHOULDER][0]
-    else:
-        right = np.cross(forward, up)
-    right = right - up * (right @ up)
-    norm = np.linalg.norm(right)
-    if not math.isfinite(norm) or norm < 1e-6:
-        raise TrialError(
-            f"cannot tell left from right: the shoulder line's horizontal part is "
-            f"{1e3 * norm:.2f} mm in the first frame"
-        )
-    right /= norm
-    fwd = np.cross(up, right)
-    left = -right
-    return origin, np.stack([fwd, left, up])
-
-
-class Heading(NamedTuple):
-    """What turns a trial's body frame (`heading_direction`).
-
-    direction: (F, 3) a vector that turns with the trunk, or None (the frame does not turn).
-    centre: (F, 3) the mean of the trunk markers it comes from, or None (from the shoulders).
-    source: in words, for the report.
-    """
-
-    direction: np.ndarray | None
-    centre: np.ndarray | None
-    source: str
-
-
-def heading_direction(
-    data: MarkerData, points: Mapping[str, np.ndarray], model: MarkerModel
-) -> Heading:
-    """The trunk's heading: the model's `MarkerModel.heading` markers when the trial has them in
-    every frame (gap-filled as the key points' markers are); else the shoulder line (shoulder -
-    left shoulder) when the model has a left shoulder; else none (the recording's ``forward``
-    axis, fixed).
-    """
-    if model.heading is not None:
-        names = [*model.heading[0], *model.heading[1]]
-        if all(n in data.names for n in names):
-            a = np.mean([data.get(n) for n in model.heading[0]], axis=0)
-            b = np.mean([data.get(n) for n in model.heading[1]], axis=0)
-            if np.isfinite(b - a).all():
-                centre = np.mean([data.get(n) for n in names], axis=0)
-                source = f"markers {'+'.join(model.heading[0])} -> {'+'.join(model.heading[1])}"
-                return Heading(b - a, centre, source)
-    if model.forward is None and LEFT_SHOULDER in points:
-        first = next(k for k in KEYPOINT_CHAIN if k in points)
-        return Heading(points[first] - points[LEFT_SHOULDER], None, "shoulder line")
-    return Heading(None, None, "fixed")
-
-
-def heading_turn(direction: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """``(F,)`` [rad] how far ``direction (F, 3)`` has turned about ``up`` since frame 0
-    (counter-clockwise seen from above positive), unwrapped. Its tilt out of the horizontal does
-    not count. Raises `TrialError` when it points (nearly) straight up in some frame."""
-    up = up / np.linalg.norm(up)
-    flat = direction - np.outer(direction @ up, up)
-    norm = np.linalg.norm(flat, axis=-1)
-    if not (norm > MIN_HEADING).all():
-        frame = int(np.argmin(np.where(np.isfinite(norm), norm, -1.0)))
-        raise TrialError(
-            f"cannot tell the trunk's heading at frame {frame}: its horizontal part is "
-            f"{1e3 * norm[frame]:.1f} mm < {1e3 * MIN_HEADING:.0f} mm"
-        )
-    d0 = flat[0]
-    sin = np.cross(d0, flat) @ up
-    cos = flat @ d0
-    return np.unwrap(np.arctan2(sin, cos))
-
-
-def body_frames(
-    points: Mapping[str, np.ndarray],
-    up: np.ndarray,
-    forward: np.ndarray | None,
-    origin: np.ndarray | None = None,
-    heading: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Body frames of every frame of a trial: ``(origin (F, 3), rot (F, 3, 3))``; ``rot[t] @
-    (p[t] - origin[t])`` gives coordinates x forward, y left, z up that move with the person.
-
-    Frame 0 is `body_frame`; frame ``t`` is it turned about ``up`` by `heading_turn` of
-    ``heading (F, 3)`` (None: not turned). origin: ``(F, 3)`` the reference point in every frame
-    (None: frame 0's shoulder in every frame, a frame fixed in the lab).
-    """
-    o0, rot0 = body_frame(points, up, forward)
-    first = next(iter(points.values()))
-    n = first.shape[0]
-    origin = np.broadcast_to(o0, (n, 3)) if origin is None else np.asarray(origin)
-    if heading is None:
-        return origin, np.broadcast_to(rot0, (n, 3, 3))
-    turn = heading_turn(heading, up)
-    u = up / np.linalg.norm(up)
-    k = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-    s, c = np.sin(turn)[:, None, None], np.cos(turn)[:, None, None]
-    turned = np.eye(3) + s * k + (1.0 - c) * (k @ k)  # (F, 3, 3) Rodrigues: turn about up
-    return origin, rot0 @ np.swapaxes(turned, -1, -2)

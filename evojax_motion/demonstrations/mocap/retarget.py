@@ -11,7 +11,7 @@ hand):
    `default_weights`: every key point when the robot's upper arm can hang below its shoulder as
    a person's does (an anthropomorphic arm), else the hand only (the others still set the scale).
 1. Scaling (`scale_to_robot`): the human key points, relative to the person's shoulder in a frame
-   that moves with the person (`markers.body_frames`), are rebuilt with the robot's segment
+   that moves with the person (`frames.body_frames`), are rebuilt with the robot's segment
    lengths keeping every segment's direction, ``x_k = x_(k-1) + L_robot,k * unit(h_k - h_(k-1))``,
    from the robot's shoulder; so the human arm's reach becomes the robot's. With another reference
    point, the shoulder moves by the human's displacement times the ratio of arm lengths. Human
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -47,6 +46,7 @@ from evojax_motion.errors import UserError
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.objective import torque_cost
 from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.settings.demonstrations import IKSettings
 
 LIMIT_EPS = 1e-6  # [rad] a joint this close to a limit counts as at the limit
 MU_INIT, MU_DOWN, MU_UP, MU_MIN = 1e-3, 0.3, 10.0, 1e-9  # Levenberg-Marquardt damping schedule
@@ -321,28 +321,6 @@ def lift_above_base(
 
 
 # ------------------------------------------------------------------------------------------ IK
-
-
-@dataclass(frozen=True)
-class IKSettings:
-    """Regularisation and iteration counts of the key-point IK (static under jit).
-
-    smooth: s [m^2/rad^2], pull toward the previous frame's posture (temporal smoothness).
-    posture: r [m^2/rad^2], pull toward the rest posture (resolves redundancy).
-    iters: LM iterations per frame. warmup: the first frame is solved ``warmup`` times in a row
-      before the trial starts (``warmup * iters`` iterations from the rest posture).
-    """
-
-    smooth: float = 1e-3
-    posture: float = 1e-5
-    iters: int = 4
-    warmup: int = 12
-
-    def __post_init__(self):
-        if self.smooth < 0 or self.posture < 0:
-            raise UserError("smooth and posture weights must be >= 0")
-        if self.iters < 1 or self.warmup < 1:
-            raise UserError("iteration counts must be >= 1")
 
 
 def _lm(residual, q0, lower, upper, iters):
