@@ -16,8 +16,6 @@ import evojax_motion.compiler.optimisation as optim_module
 from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary
 from evojax_motion.compiler.optimisation import (
-    DEFAULT_ITERS,
-    OptimSettings,
     cpu_fast_path,
     fused_search_gradient,
     gauss_newton_model,
@@ -40,6 +38,7 @@ from evojax_motion.model.dynamics import make_dynamics
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.objective import torque_cost, trajectory_torques
 from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.settings.compiler import DEFAULT_ITERS, OptimSettings
 from evojax_motion.solvers.base import SolverResult
 from evojax_motion.solvers.quasi_newton import bfgs_update
 from evojax_motion.solvers.steps import subspace_step

@@ -7,9 +7,8 @@ constant (eq. 3); the weights minimise the torque cost
 
 subject to the boundary conditions of eq. 2. The BCs are linear in the weights, so we move in their
 null space: ``x = x_ls + N z`` (`compiler.interpolation.solve_boundary` with ``leak``) meets them
-after
-every step by construction, whatever the optimiser does. Which BC directions bind is decided in q
-units (`compiler.interpolation.BC_LEAK`); z is the RMS change of q [rad] along q-orthonormal null
+after every step by construction, whatever the optimiser does. Which BC directions bind is decided
+in q units (`settings.compiler.BC_LEAK`); z is the RMS change of q [rad] along q-orthonormal null
 directions, at most ``max_free_per_joint`` per joint, masked (static shapes). The start z = 0 is
 the prior minimum-norm BC solution, i.e. the interpolation compiler's answer with K = 4.
 
@@ -69,10 +68,8 @@ Example::
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -81,7 +78,6 @@ import numpy as np
 
 from evojax_motion.compiler.basis import Basis, small_eigh, small_svd
 from evojax_motion.compiler.interpolation import (
-    BC_LEAK,
     Boundary,
     basis_functions,
     boundary_residual,
@@ -94,6 +90,7 @@ from evojax_motion.linalg.reductions import sum_together
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.motion.objective import cost_from_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
+from evojax_motion.settings.compiler import BC_LEAK, OptimSettings
 from evojax_motion.solvers.base import Descent, HessianModel, SolverResult
 from evojax_motion.solvers.chunking import in_chunks, optimise_in_chunks
 from evojax_motion.solvers.quasi_newton import (
@@ -104,11 +101,6 @@ from evojax_motion.solvers.quasi_newton import (
 from evojax_motion.solvers.steps import ExactStep, SubspaceStep
 from evojax_motion.solvers.trust_region import trust_region
 
-METHODS = ("newton", "bfgs", "adam", "lbfgs")
-# Iteration budget of each method where ``max_iters`` is null (BFGS needs more, cheaper, ones:
-# with its subspace step, 40 left a median gap to SLSQP of 0.11-0.23 % at paper scale on an
-# H100, 50 gave 0.025 %; CHANGELOG.md).
-DEFAULT_ITERS = {"newton": 25, "bfgs": 50, "adam": 25, "lbfgs": 25}
 # Samples may exceed a joint limit by this much [rad] and still count as within it: float32
 # rounding of a BC that sits exactly on a limit.
 LIMIT_TOL = 1e-5
@@ -120,162 +112,6 @@ DIRECTION_RTOL = 1e-5
 # and 5 took 20, 20, 18 and 21.5 iterations (median); strides 1 and 3 cost 74 and 25 ms per 300
 # conditions.
 GN_NODE_STRIDE = 3
-INITIAL_MODELS = ("gauss-newton", "identity")
-# Default `OptimSettings.max_batch` (chosen on an H200 with the fused search gradient: chunks
-# of ~3,000 problems ran 20-23 % faster than of ~4,000 at 30,000 and 100,000 conditions;
-# docs/scaling.md).
-MAX_BATCH = 3072
-
-
-def _check(ok: bool, name: str, expected: str, value) -> None:
-    if not ok:
-        raise ValueError(f"{name}: expected {expected}, got {value!r}")
-
-
-@dataclass(frozen=True)
-class OptimSettings:
-    """Settings of the movement compiler via optimisation.
-
-    - ``n_components``: principal components K of eq. 3 (paper: 4).
-    - ``method``: ``"newton"`` (default), ``"bfgs"``, ``"adam"`` or ``"lbfgs"`` (module docstring).
-    - ``max_iters``: iteration budget (Newton / BFGS / L-BFGS iterations, Adam steps); null: the
-      method's `DEFAULT_ITERS`.
-    - ``tol``: stop when the Newton decrement ``g.B^-1.g / 2`` falls below ``tol * |f|`` (Newton,
-      BFGS), or the gradient norm below ``tol * (1 + |f|)`` (L-BFGS; Adam runs its budget).
-    - ``hessian_every``: Newton only; refresh the exact Hessian every so many iterations (BFGS
-      updates in between).
-    - ``learning_rate``: Adam's step size [rad RMS of q per step].
-    - ``limit_margin`` [rad]: the penalty acts on ``[lower + margin, upper - margin]``.
-    - ``limit_penalty`` [cost units / rad^2 / s]: weight of the quadratic limit penalty (the
-      velocity and torque penalties' too, per (rad/s)^2 s and (N m)^2 s).
-    - ``limit_headroom`` [fraction]: where the robot has velocity or torque limits
-      (`model.robot.Robot.velocity_limit`, ``torque_limit``, handed to `optimise_prepared`), the
-      penalty also acts on ``|qd|`` and ``|tau|`` above ``(1 - limit_headroom) * limit``.
-      Without it 271-296 of the paper configuration's 300 offspring a generation went over the
-      Mahru arm's velocity limits and were discarded (CHANGELOG.md).
-    - ``n_starts``: starts per condition (1 = z = 0 only); ``start_scale``: spread of the others
-      [rad RMS of q]; ``seed``: the fixed key of those starts (deterministic).
-    - ``max_free_per_joint``: free null-space directions kept per joint (static size of z: J times
-      this). After both position BCs, K + 1 - 2 = 3 is all there can be; bases whose velocity BCs
-      bind too have fewer (the synthetic demonstrations at T = 100: 1 on ~90 % of the joints, 2
-      on the rest, so 2 keeps them all; 1 made the median gap 0.18 %). Fewer is cheaper: the
-      Newton step's Hessian costs one Hessian-vector product per direction.
-    - ``search_stride``: the optimiser's objective integrates over every ``search_stride``-th
-      sample (trapezoid, `search_nodes`); the result's cost is always eq. 5 on all T samples.
-      Stride 4 at T = 100 (``configs/catch_ball.yaml``): 5.5x faster, median gap to SLSQP
-      unchanged, p95 0.22 % instead of 0.046 % (``benchmarks/results/optimality_cpu_fast.json``).
-    - ``bc_leak`` [rad per rad]: BC directions that 1 rad RMS of motion changes by less than this
-      are free, the others are met exactly (`compiler.interpolation.BC_LEAK`).
-    - ``max_batch``: the most problems (conditions x starts) optimised at once; a larger batch is
-      split into equal chunks optimised one after another (`optimise_in_chunks`). On an H100 a
-      batch's time per problem doubled between 7,500 and 15,000 problems at once (most likely
-      its working set leaving the GPU's cache; not proven), and with BFGS's subspace step
-      chunks of ~4,000 ran 16-22 % faster than of ~7,700 at 30,000 and 100,000 conditions; with
-      the fused search gradient (`make_search_value`) on an H200, chunks of ~3,000 20-23 %
-      faster than of ~4,000 (`docs/scaling.md`); null: the whole batch at once.
-    - ``initial_model``: BFGS only, its first model of the torque cost: ``"gauss-newton"``
-      (`gauss_newton_model`: forward-mode Jacobians on a third of the nodes, ~3 optimiser
-      passes' cost; paper configuration: 18 iterations median instead of 36, and p95 gap to
-      SLSQP 1.1 % instead of 3.1 %, on the float32-rounded problems before
-      `compiler.interpolation.end_slopes`; 22 iterations median since, 19 since a rejected step
-      keeps
-      the model, `solvers.quasi_newton.StructuredBFGS`) or ``"identity"`` (a multiple of it, no
-      derivatives).
-    """
-
-    n_components: int = 4
-    method: str = "newton"
-    max_iters: int | None = None
-    tol: float = 1e-6
-    learning_rate: float = 0.1
-    limit_margin: float = 0.02
-    limit_penalty: float = 1e4
-    limit_headroom: float = 0.05
-    max_free_per_joint: int = 3
-    search_stride: int = 1
-    hessian_every: int = 1
-    n_starts: int = 1
-    start_scale: float = 1.0
-    seed: int = 0
-    bc_leak: float = BC_LEAK
-    max_batch: int | None = MAX_BATCH
-    initial_model: str = "gauss-newton"
-
-    def __post_init__(self):
-        _check(
-            isinstance(self.n_components, int) and self.n_components >= 1,
-            "n_components",
-            "an integer >= 1",
-            self.n_components,
-        )
-        _check(self.method in METHODS, "method", f"one of {METHODS}", self.method)
-        _check(
-            self.max_iters is None or (isinstance(self.max_iters, int) and self.max_iters >= 1),
-            "max_iters",
-            "an integer >= 1 or null",
-            self.max_iters,
-        )
-        _check(0 <= self.tol < 1, "tol", "a number in [0, 1)", self.tol)
-        _check(self.learning_rate > 0, "learning_rate", "a number > 0", self.learning_rate)
-        _check(
-            0 <= self.limit_margin < 0.5,
-            "limit_margin",
-            "a number in [0, 0.5) rad",
-            self.limit_margin,
-        )
-        _check(self.limit_penalty >= 0, "limit_penalty", "a number >= 0", self.limit_penalty)
-        _check(
-            0 <= self.limit_headroom < 1,
-            "limit_headroom",
-            "a fraction in [0, 1)",
-            self.limit_headroom,
-        )
-        _check(
-            isinstance(self.max_free_per_joint, int)
-            and 1 <= self.max_free_per_joint <= self.n_components,
-            "max_free_per_joint",
-            f"an integer in [1, n_components = {self.n_components}]",
-            self.max_free_per_joint,
-        )
-        _check(
-            isinstance(self.search_stride, int) and self.search_stride >= 1,
-            "search_stride",
-            "an integer >= 1",
-            self.search_stride,
-        )
-        _check(
-            isinstance(self.hessian_every, int) and self.hessian_every >= 1,
-            "hessian_every",
-            "an integer >= 1",
-            self.hessian_every,
-        )
-        _check(
-            isinstance(self.n_starts, int) and self.n_starts >= 1,
-            "n_starts",
-            "an integer >= 1",
-            self.n_starts,
-        )
-        _check(self.start_scale >= 0, "start_scale", "a number >= 0", self.start_scale)
-        _check(isinstance(self.seed, int), "seed", "an integer", self.seed)
-        _check(0 < self.bc_leak < 1, "bc_leak", "a number in (0, 1)", self.bc_leak)
-        _check(
-            self.max_batch is None or (isinstance(self.max_batch, int) and self.max_batch >= 1),
-            "max_batch",
-            "an integer >= 1 or null",
-            self.max_batch,
-        )
-        _check(
-            self.initial_model in INITIAL_MODELS,
-            "initial_model",
-            f"one of {INITIAL_MODELS}",
-            self.initial_model,
-        )
-
-    def resolved(self) -> OptimSettings:
-        """These settings with ``max_iters`` made concrete (`DEFAULT_ITERS` where it is null)."""
-        if self.max_iters is not None:
-            return self
-        return dataclasses.replace(self, max_iters=DEFAULT_ITERS[self.method])
 
 
 class Optimised(NamedTuple):
@@ -594,7 +430,7 @@ def fused_search_gradient(dyn: Dynamics) -> bool:
 
 def make_search_value(dyn: Dynamics, lo, hi, weight, method: str, vmax=None, taumax=None):
     """``f(z (J, F), problem) -> penalised objective``: `make_objective`'s first output, for the
-    optimiser of ``method`` (`METHODS`).
+    optimiser of ``method`` (`settings.compiler.METHODS`).
 
     For the first-order methods (BFGS, Adam and L-BFGS, which take no second derivatives of
     ``f``; Newton takes its Hessian) where `fused_search_gradient`, ``f`` has a custom VJP. Its
@@ -678,10 +514,10 @@ def fixed_trip_loops() -> bool:
 def run_solver(
     settings: OptimSettings, fun: Callable, z0, free, known=None, initial=None
 ) -> SolverResult:
-    """The solver of ``settings.method`` (`METHODS`; ``settings`` resolved) on B problems
-    ``fun(z (n,), i) -> scalar`` from ``z0 (B, n)``, moving the ``free (B, n)`` coordinates.
-    BFGS only: ``known`` the cheap part of the objective (`penalty_model`), ``initial (B, n,
-    n)`` the first model of the rest (`gauss_newton_model`) or None
+    """The solver of ``settings.method`` (`settings.compiler.METHODS`; ``settings`` resolved) on
+    B problems ``fun(z (n,), i) -> scalar`` from ``z0 (B, n)``, moving the ``free (B, n)``
+    coordinates. BFGS only: ``known`` the cheap part of the objective (`penalty_model`),
+    ``initial (B, n, n)`` the first model of the rest (`gauss_newton_model`) or None
     (`solvers.quasi_newton.StructuredBFGS`)."""
     method, max_iters = settings.method, settings.max_iters
     assert max_iters is not None  # `OptimSettings.resolved`

@@ -38,7 +38,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings
 from evojax_motion.errors import UserError, check_setting
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
@@ -54,6 +53,7 @@ from evojax_motion.online.generation import (
     reach_query,
     resolve_settings,
 )
+from evojax_motion.settings.compiler import BasisSettings
 
 
 @dataclass(frozen=True)

@@ -68,7 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import (
     Boundary,
     basis_functions,
@@ -85,6 +85,7 @@ from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import EVOLVED, Database
 from evojax_motion.motion.objective import cost_from_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
+from evojax_motion.settings.compiler import BasisSettings
 
 
 @dataclass(frozen=True)

@@ -29,14 +29,13 @@ from typing import Any, get_type_hints
 
 import yaml
 
-from evojax_motion.compiler.basis import BasisSettings
-from evojax_motion.compiler.optimisation import OptimSettings
 from evojax_motion.demonstrations.synthetic import DemoSettings
 from evojax_motion.errors import UserError
 from evojax_motion.evolution.sharding import ParallelSettings
 from evojax_motion.evolution.step import EvolutionSettings
 from evojax_motion.online.generation import MAX_DURATION
 from evojax_motion.run.training import TrainSettings
+from evojax_motion.settings.compiler import BasisSettings, OptimSettings
 
 DYNAMICS_BACKENDS = ("rnea", "mjx")
 # Every integer of a config is a size, an index or a seed that ends up in an int32 (array shapes,
