@@ -35,7 +35,8 @@ from scipy.optimize import minimize
 
 from evojax_motion.compiler.basis import Basis
 from evojax_motion.compiler.interpolation import Boundary
-from evojax_motion.compiler.optimisation import make_objective, reduced_problems
+from evojax_motion.compiler.problems import reduced_problems
+from evojax_motion.compiler.search_objective import make_objective
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import make_dynamics
 from evojax_motion.model.robot import Robot, mj_inverse_torques

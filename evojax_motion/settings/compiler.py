@@ -104,7 +104,7 @@ class OptimSettings:
       on the rest, so 2 keeps them all; 1 made the median gap 0.18 %). Fewer is cheaper: the
       Newton step's Hessian costs one Hessian-vector product per direction.
     - ``search_stride``: the optimiser's objective integrates over every ``search_stride``-th sample
-      (trapezoid, `compiler.optimisation.search_nodes`); the result's cost is always eq. 5 on all T
+      (trapezoid, `compiler.problems.search_nodes`); the result's cost is always eq. 5 on all T
       samples. Stride 4 at T = 100 (``configs/catch_ball.yaml``): 5.5x faster, median gap to SLSQP
       unchanged, p95 0.22 % instead of 0.046 % (``benchmarks/results/optimality_cpu_fast.json``).
     - ``bc_leak`` [rad per rad]: BC directions that 1 rad RMS of motion changes by less than this
@@ -114,15 +114,15 @@ class OptimSettings:
       On an H100 a batch's time per problem doubled between 7,500 and 15,000 problems at once (most
       likely its working set leaving the GPU's cache; not proven), and with BFGS's subspace step
       chunks of ~4,000 ran 16-22 % faster than of ~7,700 at 30,000 and 100,000 conditions; with the
-      fused search gradient (`compiler.optimisation.make_search_value`) on an H200, chunks of ~3,000
-      20-23 % faster than of ~4,000 (`docs/scaling.md`); null: the whole batch at once.
+      fused search gradient (`compiler.search_objective.make_search_value`) on an H200, chunks of
+      ~3,000 20-23 % faster than of ~4,000 (`docs/scaling.md`); null: the whole batch at once.
     - ``initial_model``: BFGS only, its first model of the torque cost: ``"gauss-newton"``
-      (`compiler.optimisation.gauss_newton_model`: forward-mode Jacobians on a third of the
-      nodes, ~3 optimiser passes' cost; paper configuration: 18 iterations median instead of 36,
-      and p95 gap to SLSQP 1.1 % instead of 3.1 %, on the float32-rounded problems before
+      (`compiler.search_objective.gauss_newton_model`: forward-mode Jacobians on a third of the
+      nodes, ~3 optimiser passes' cost; paper configuration: 18 iterations median instead of 36, and
+      p95 gap to SLSQP 1.1 % instead of 3.1 %, on the float32-rounded problems before
       `compiler.interpolation.end_slopes`; 22 iterations median since, 19 since a rejected step
-      keeps the model, `solvers.quasi_newton.StructuredBFGS`) or ``"identity"`` (a multiple of
-      it, no derivatives).
+      keeps the model, `solvers.quasi_newton.StructuredBFGS`) or ``"identity"`` (a multiple of it,
+      no derivatives).
     """
 
     n_components: int = 4
