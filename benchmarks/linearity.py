@@ -188,7 +188,7 @@ def markdown(r: dict, sources: list[str], rows: int) -> str:
 
 
 def main(argv=None) -> dict:
-    from evojax_motion.compiler.optimisation import MAX_BATCH
+    from evojax_motion.settings.compiler import MAX_BATCH
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(

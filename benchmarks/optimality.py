@@ -30,13 +30,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.slsqp_reference import solve_reference, torque_costs_f64
-from evojax_motion.compiler.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary
-from evojax_motion.compiler.optimisation import OptimSettings, make_optimisation_compiler
+from evojax_motion.compiler.optimisation import make_optimisation_compiler
 from evojax_motion.model.dynamics import make_dynamics
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.database import make_database
 from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.settings.compiler import BasisSettings, OptimSettings
 
 RESULTS = Path(__file__).resolve().parent / "results"
 # Optimiser variants compared (name -> OptimSettings overrides); the default is "newton".

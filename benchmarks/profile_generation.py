@@ -3,17 +3,16 @@
 Stages (each jitted alone, timed after compilation, median of ``--repeats``):
 ``neighbours`` (eq. 6 top-k), ``pca`` (per-joint PCA of the neighbours), ``bc_solve``
 (`compiler.interpolation.solve_boundary` with the optimisation compiler's rule), ``reduced``
-(`compiler.optimisation.reduced_problems`: BC solve + orthonormal null directions + node arrays),
+(`compiler.problems.reduced_problems`: BC solve + orthonormal null directions + node arrays),
 ``value`` and ``value_grad`` of the batched search objective at z = 0 as the optimiser
-compiles them (`compiler.optimisation.cpu_fast_path`, `make_search_value`: on CPU with BFGS the
-scalar
-RNEA layout and one reduction over the nodes), ``value_grad_autodiff`` (autodiff of
-`make_objective` with the config's dynamics, for comparison) and ``hessian`` (of the latter),
-``eigh`` of the batch's trust-region model (B, n, n) (``jnp.linalg.eigh``, and ``small_eigh``:
-Jacobi on accelerators), ``tr_step`` (the trust-region step of that model: eigh + secular
-iterations), and the whole optimiser
-(``optimise``, compiled as the step compiles it) and generation step (``step``). The sum of the
-parts is not the step: inside one jit XLA fuses across them.
+compiles them (`compiler.optimisation.cpu_fast_path`, `compiler.search_objective.make_search_value`:
+on CPU with BFGS the scalar RNEA layout and one reduction over the nodes), ``value_grad_autodiff``
+(autodiff of `compiler.search_objective.make_objective` with the config's dynamics, for
+comparison) and ``hessian`` (of the latter), ``eigh`` of the batch's trust-region model (B, n, n)
+(``jnp.linalg.eigh``, and ``small_eigh``: Jacobi on accelerators), ``tr_step`` (the trust-region
+step of that model: eigh + secular iterations), and the whole optimiser (``optimise``, compiled
+as the step compiles it) and generation step (``step``). The sum of the parts is not the step:
+inside one jit XLA fuses across them.
 
 Usage:
     python benchmarks/profile_generation.py --conditions 300 [--set compiler.method=bfgs]
@@ -46,10 +45,9 @@ from evojax_motion.compiler.optimisation import (  # noqa: E402
     _trust_region_step,
     compile_optimisation,
     cpu_fast_path,
-    make_objective,
-    make_search_value,
-    reduced_problems,
 )
+from evojax_motion.compiler.problems import reduced_problems  # noqa: E402
+from evojax_motion.compiler.search_objective import make_objective, make_search_value  # noqa: E402
 from evojax_motion.evolution.step import make_generation_step  # noqa: E402
 from evojax_motion.motion.database import count_human  # noqa: E402
 from evojax_motion.motion.timegrid import make_time_grid  # noqa: E402

@@ -35,12 +35,14 @@ from scipy.optimize import minimize
 
 from evojax_motion.compiler.basis import Basis
 from evojax_motion.compiler.interpolation import Boundary
-from evojax_motion.compiler.optimisation import OptimSettings, make_objective, reduced_problems
+from evojax_motion.compiler.problems import reduced_problems
+from evojax_motion.compiler.search_objective import make_objective
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import make_dynamics
 from evojax_motion.model.robot import Robot, mj_inverse_torques
 from evojax_motion.motion.objective import torque_cost
 from evojax_motion.motion.timegrid import TimeGrid
+from evojax_motion.settings.compiler import OptimSettings
 
 GRADIENTS = ("jax", "mujoco-fd")
 SLSQP_FTOL = 1e-12  # on the objective normalised to 1 at the start

@@ -8,13 +8,14 @@ import numpy as np
 
 from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, compile_interpolation
-from evojax_motion.compiler.optimisation import OptimSettings, make_optimisation_compiler
+from evojax_motion.compiler.optimisation import make_optimisation_compiler
 from evojax_motion.demonstrations.synthetic import generate_demonstrations
 from evojax_motion.model.dynamics import make_dynamics
 from evojax_motion.model.ik import solve_ik
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.objective import torque_cost
 from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.settings.compiler import OptimSettings
 from evojax_motion.settings.demonstrations import DemoSettings
 
 # 1. A robot and its dynamics (RNEA compiled from the MJCF; backend="mjx" for MuJoCo MJX).

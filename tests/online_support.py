@@ -15,13 +15,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings
 from evojax_motion.model.dynamics import Dynamics, make_dynamics
 from evojax_motion.model.robot import Robot, load_robot
 from evojax_motion.model.robot import mj_inverse_torques as reference_torques
 from evojax_motion.motion.database import Database, DatabaseMeta, make_database, save_database
 from evojax_motion.motion.timegrid import TimeGrid, make_time_grid
 from evojax_motion.online.generation import final_hand, make_online_generator, online_database
+from evojax_motion.settings.compiler import BasisSettings
 from evojax_motion.settings.online import OnlineSettings
 
 SAMPLES = 32  # T: small for compile time, large enough for the BC algebra (compile_interp)

@@ -12,7 +12,6 @@ from scipy.spatial.transform import Rotation
 import evojax_motion.compiler.basis as basis_module
 import evojax_motion.linalg.jacobi as linalg_jacobi
 from evojax_motion.compiler.basis import (
-    BasisSettings,
     neighbour_candidates,
     pca_basis,
     rotation_distance,
@@ -25,6 +24,7 @@ from evojax_motion.compiler.basis import (
     validate_targets,
 )
 from evojax_motion.errors import UserError
+from evojax_motion.settings.compiler import BasisSettings
 
 TOL_ANGLE = 1e-3  # rad: largest principal angle between our and numpy's component subspaces
 TOL_PCA = 1e-5  # rad: masked mean vs numpy (float32 sums of ~10 values of ~1 rad)

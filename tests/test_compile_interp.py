@@ -19,6 +19,7 @@ from evojax_motion.compiler.interpolation import (
 )
 from evojax_motion.errors import UserError
 from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.settings.compiler import BC_LEAK
 
 T, J, K, C = 24, 3, 3, 6
 TOL_BC_F32 = 1e-5  # rad, rad/s: BCs of a solvable system in float32
@@ -255,9 +256,7 @@ def test_bc_solve_gives_the_same_problems_past_the_gram_switch(grid, monkeypatch
     out = {}
     for name, threshold in (("gram", 0), ("jacobi", 10**9)):
         monkeypatch.setattr(ci, "GRAM_SVD_MIN_MATRICES", threshold)
-        out[name] = jax.jit(lambda b, c: ci.solve_boundary(b, c, grid, k, leak=ci.BC_LEAK))(
-            basis, bc
-        )
+        out[name] = jax.jit(lambda b, c: ci.solve_boundary(b, c, grid, k, leak=BC_LEAK))(basis, bc)
     gram, ref = out["gram"], out["jacobi"]
     assert not np.array_equal(gram.null, ref.null)  # the two paths did run (rounding differs)
     np.testing.assert_array_equal(gram.rank, ref.rank)

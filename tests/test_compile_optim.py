@@ -13,25 +13,28 @@ import pytest
 
 import evojax_motion.compiler.basis as basis_module
 import evojax_motion.compiler.optimisation as optim_module
+import evojax_motion.compiler.search_objective as objective_module
 from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary
 from evojax_motion.compiler.optimisation import (
-    DEFAULT_ITERS,
-    OptimSettings,
     cpu_fast_path,
-    fused_search_gradient,
-    gauss_newton_model,
-    joint_lists,
-    limit_penalty,
-    make_objective,
     make_optimisation_compiler,
-    make_search_value,
     optimise_in_chunks,
-    penalty_model,
+    validate_limits,
+)
+from evojax_motion.compiler.problems import (
+    joint_lists,
     problem_trajectory,
     reduced_problems,
     search_nodes,
-    validate_limits,
+)
+from evojax_motion.compiler.search_objective import (
+    fused_search_gradient,
+    gauss_newton_model,
+    limit_penalty,
+    make_objective,
+    make_search_value,
+    penalty_model,
 )
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.cholesky import cholesky_solve
@@ -40,6 +43,7 @@ from evojax_motion.model.dynamics import make_dynamics
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.objective import torque_cost, trajectory_torques
 from evojax_motion.motion.timegrid import make_time_grid
+from evojax_motion.settings.compiler import DEFAULT_ITERS, OptimSettings
 from evojax_motion.solvers.base import SolverResult
 from evojax_motion.solvers.quasi_newton import bfgs_update
 from evojax_motion.solvers.steps import subspace_step
@@ -715,9 +719,9 @@ def test_joint_lists_give_the_array_objective(setup, form, monkeypatch):
     def value_grad():  # traced anew: joint_lists is read at trace time
         return jax.vmap(jax.value_and_grad(lambda zz, p: objective(zz, p)[0]))(z, problems)
 
-    monkeypatch.setattr(optim_module, "joint_lists", lambda d: True)
+    monkeypatch.setattr(objective_module, "joint_lists", lambda d: True)
     f_lists, g_lists = value_grad()
-    monkeypatch.setattr(optim_module, "joint_lists", lambda d: False)
+    monkeypatch.setattr(objective_module, "joint_lists", lambda d: False)
     f_array, g_array = value_grad()
     np.testing.assert_allclose(np.asarray(f_lists), np.asarray(f_array), rtol=TOL_LAYOUT)
     np.testing.assert_allclose(np.asarray(g_lists), np.asarray(g_array),

@@ -186,14 +186,13 @@ def small():
     reaches to noisy comfortable postures), its condition set and a jitted generation step."""
     import jax
 
-    from evojax_motion.compiler.basis import BasisSettings
-    from evojax_motion.compiler.optimisation import OptimSettings
     from evojax_motion.evolution.conditions import make_conditions
     from evojax_motion.evolution.step import make_generation_step
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.model.robot import load_robot
     from evojax_motion.motion.objective import torque_cost
     from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.settings.compiler import BasisSettings, OptimSettings
 
     robot = load_robot("mahru_arm")
     dyn = make_dynamics(robot, "rnea")
@@ -303,9 +302,9 @@ def test_conditions_are_the_first_qualifying_candidates_in_key_order(small):
 
 
 def test_conditions_refuse_impossible_settings():
-    from evojax_motion.compiler.basis import BasisSettings
     from evojax_motion.errors import UserError
     from evojax_motion.evolution.conditions import make_conditions, sampling_box
+    from evojax_motion.settings.compiler import BasisSettings
 
     humans = _humans(n=5)
     with pytest.raises(UserError, match=r"evolution\.region_margin"):
@@ -411,9 +410,9 @@ def test_generation_step_traces_exact_float32_products(small):
     rejected 99 % of the offspring for joint limits on an H200 (`precision`)."""
     import jax
 
-    from evojax_motion.compiler.optimisation import OptimSettings
     from evojax_motion.evolution.sharding import make_sharded_generation_step
     from evojax_motion.evolution.step import make_generation_step
+    from evojax_motion.settings.compiler import OptimSettings
 
     robot, s = small["robot"], small
     db0 = init_evolved_slots(s["humans"], s["cond"])

@@ -46,13 +46,12 @@ def small_setup(robot, seed: int = 0):
     ``robot.posture_box`` near rest, their conditions and the pieces of a generation step."""
     import jax
 
-    from evojax_motion.compiler.basis import BasisSettings
-    from evojax_motion.compiler.optimisation import OptimSettings
     from evojax_motion.evolution.conditions import make_conditions
     from evojax_motion.evolution.step import EvolutionSettings
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.motion.objective import torque_cost
     from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.settings.compiler import BasisSettings, OptimSettings
 
     dyn = make_dynamics(robot, "rnea")
     grid = make_time_grid(T_SAMPLES)

@@ -291,9 +291,7 @@ def _problem():
     import jax
     import jax.numpy as jnp
 
-    from evojax_motion.compiler.basis import BasisSettings
     from evojax_motion.compiler.interpolation import Boundary
-    from evojax_motion.compiler.optimisation import OptimSettings
     from evojax_motion.evolution.conditions import Conditions
     from evojax_motion.evolution.step import EvolutionSettings, init_evolved_slots
     from evojax_motion.model.dynamics import make_dynamics
@@ -301,6 +299,7 @@ def _problem():
     from evojax_motion.motion.database import Database, make_database
     from evojax_motion.motion.objective import torque_cost
     from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.settings.compiler import BasisSettings, OptimSettings
 
     assert jax.config.read("jax_enable_x64")
     f64 = np.float64
@@ -396,9 +395,9 @@ def _child_single() -> dict:
 
     import jax
 
-    from evojax_motion.compiler.optimisation import OptimSettings
     from evojax_motion.evolution.sharding import make_sharded_generation_step, padded_count
     from evojax_motion.evolution.step import make_generation_step
+    from evojax_motion.settings.compiler import OptimSettings
 
     assert jax.device_count() == N_DEVICES
     args, db0, cond = _problem()

@@ -6,10 +6,11 @@ whose conditions are closest to it (paper sec. 4.2: within a 15 cm radius, hand 
     d(c_i, c_j) = w_pos * |p_i - p_j| + w_rot * ||R_i^T R_j - I||_F            (eq. 6, see below)
 
 Shapes must stay static under jit, so instead of "all primitives within r" we take a fixed-size
-top-k (k = ``BasisSettings.neighbours``) of the valid entries by distance, with a mask. When fewer
-than k valid primitives lie within r, the nearest ones outside r fill the set and the condition is
-flagged ``short``; invalid entries (and entries with a non-finite condition) are never selected,
-so with fewer than k valid primitives in total the surplus slots are masked out.
+top-k (k = `settings.compiler.BasisSettings`' ``neighbours``) of the valid entries by distance,
+with a mask. When fewer than k valid primitives lie within r, the nearest ones outside r fill the
+set and the condition is flagged ``short``; invalid entries (and entries with a non-finite
+condition) are never selected, so with fewer than k valid primitives in total the surplus slots
+are masked out.
 
 Orientation: the paper writes ``w2 |R_i^T R_j|``, but any norm of a rotation matrix is constant
 (the Frobenius norm of a rotation is sqrt(3)), so taken literally the term adds nothing. We use its
@@ -37,7 +38,6 @@ Example (a batch of C target hand positions)::
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -51,52 +51,6 @@ from evojax_motion.linalg.jacobi import gram_two_pass, jacobi_backend
 # A component whose singular value is below this fraction of the largest one spans only rounding
 # noise (e.g. a joint that no neighbour moves); it is set to zero rather than to a random direction.
 PCA_RTOL = 1e-5
-
-
-def _check(ok: bool, name: str, expected: str, value) -> None:
-    if not ok:
-        raise ValueError(f"{name}: expected {expected}, got {value!r}")
-
-
-@dataclass(frozen=True)
-class BasisSettings:
-    """Neighbour selection of eq. 6; defaults are the paper's (sec. 4.2).
-
-    - ``radius`` [m]: primitives whose condition lies within it are "inside" (paper: 15 cm).
-    - ``neighbours``: fixed number k of primitives per basis (top-k by distance).
-    - ``w_pos`` [1/m], ``w_rot``: weights of the position and orientation terms of eq. 6.
-    """
-
-    radius: float = 0.15
-    neighbours: int = 10
-    w_pos: float = 1.0
-    w_rot: float = 0.0
-
-    def __post_init__(self):
-        _check(
-            isinstance(self.radius, int | float) and self.radius > 0,
-            "radius",
-            "a number > 0 [m]",
-            self.radius,
-        )
-        _check(
-            isinstance(self.neighbours, int) and self.neighbours >= 2,
-            "neighbours",
-            "an integer >= 2",
-            self.neighbours,
-        )
-        _check(
-            isinstance(self.w_pos, int | float) and self.w_pos > 0,
-            "w_pos",
-            "a number > 0",
-            self.w_pos,
-        )
-        _check(
-            isinstance(self.w_rot, int | float) and self.w_rot >= 0,
-            "w_rot",
-            "a number >= 0",
-            self.w_rot,
-        )
 
 
 class Neighbours(NamedTuple):

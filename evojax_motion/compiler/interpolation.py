@@ -25,7 +25,8 @@ The same algebra yields the null space: ``x = x_ls + N z`` meets the BCs for eve
 optimisation compiler moves in z (static shapes: N always has K columns, masked by ``null_mask``;
 the constant's column makes the rank at least 1). For it, which BC directions bind is decided in
 q units (``solve_boundary(..., leak=BC_LEAK)``): a direction binds when 1 rad RMS of motion
-changes it by more than `BC_LEAK`; the solution is still the prior minimum-norm one.
+changes it by more than `settings.compiler.BC_LEAK`; the solution is still the prior minimum-norm
+one.
 
 Example::
 
@@ -54,21 +55,13 @@ from evojax_motion.motion.timegrid import TimeGrid
 # them exactly takes large coefficients far from the demonstrations. On the synthetic catching
 # demonstrations (leave-one-out, 100 held out, T = 100, K = 3) 1e-2 reproduced held-out motions with
 # 0.78 deg median RMS error against 0.81 deg at 1e-3 and 1.5 deg at 1e-4, leaving end-velocity
-# errors below 1e-3 rad/s. The optimisation compiler decides in q units instead (`BC_LEAK`): in
-# prior units a direction can look degenerate and still move the end velocities by 0.2 .. 0.6
-# rad/s per rad of motion.
+# errors below 1e-3 rad/s. The optimisation compiler decides in q units instead
+# (`settings.compiler.BC_LEAK`): in prior units a direction can look degenerate and still move the
+# end velocities by 0.2 .. 0.6 rad/s per rad of motion.
 RANK_RTOL = 1e-2
 # Relative tolerance at float32 noise level (SVD error ~1e-7 relative): systems solvable at this
 # level are solved exactly.
 STRICT_RANK_RTOL = 1e-5
-# The optimisation compiler's rule [rad per rad]: a BC direction binds (is met exactly) when moving
-# q by 1 rad RMS along the basis changes it by more than this (rad for q, rad/s x D for qd); the
-# directions below it are free, so an optimisation step of 1 rad RMS lets the end velocities drift
-# by at most BC_LEAK / D. Rest-to-rest minimum-jerk bases (T = 100) sit at ~1e-6 and are free; the
-# synthetic demonstrations' near-rest ends (IK, T = 100) at 0.2 .. 0.6 and bind: 7.0 free
-# dimensions per condition (one per joint) at 2e-4 against 8.0 at 1e-3 (end velocities then drift
-# up to 2e-3 rad/s per rad).
-BC_LEAK = 2e-4
 # From this many BC systems (conditions x joints) in one solve, the optimisation compiler's rule
 # finds each basis' q-orthonormal coordinates by `compiler.basis.small_right_svd`'s two Gram passes
 # instead
@@ -106,7 +99,7 @@ class BCSolution(NamedTuple):
     rank: (C, J) int32 number of binding BC directions (of 4).
     Any ``coeffs + null @ z`` meets the binding BCs as well as ``coeffs`` does. With the
     interpolation rule the null directions may still move the end velocities noticeably (see
-    `RANK_RTOL`); use ``leak`` (`BC_LEAK`) to move without disturbing the BCs.
+    `RANK_RTOL`); use ``leak`` (`settings.compiler.BC_LEAK`) to move without disturbing the BCs.
     """
 
     coeffs: jnp.ndarray
@@ -192,8 +185,9 @@ def end_slopes(d1_ends, f):
     The rows sum to zero, so differencing ``f`` against its first and last sample first changes
     nothing in exact arithmetic; in float32 it keeps the rounding of |f| (amplified ~1,000x by the
     one-sided stencil at T = 100) out of slopes that are compared with thresholds ~1e-4
-    (`BC_LEAK`). Without it, paper-scale BC solves in float32 missed float64's by up to 0.3 rad in
-    q (CPU) and 0.8 rad (H100), and the GPU and the CPU set up different problems.
+    (`settings.compiler.BC_LEAK`). Without it, paper-scale BC solves in float32 missed float64's
+    by up to 0.3 rad in q (CPU) and 0.8 rad (H100), and the GPU and the CPU set up different
+    problems.
     """
     hi = jax.lax.Precision.HIGHEST
     return jnp.stack(

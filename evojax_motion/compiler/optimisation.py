@@ -7,9 +7,8 @@ constant (eq. 3); the weights minimise the torque cost
 
 subject to the boundary conditions of eq. 2. The BCs are linear in the weights, so we move in their
 null space: ``x = x_ls + N z`` (`compiler.interpolation.solve_boundary` with ``leak``) meets them
-after
-every step by construction, whatever the optimiser does. Which BC directions bind is decided in q
-units (`compiler.interpolation.BC_LEAK`); z is the RMS change of q [rad] along q-orthonormal null
+after every step by construction, whatever the optimiser does. Which BC directions bind is decided
+in q units (`settings.compiler.BC_LEAK`); z is the RMS change of q [rad] along q-orthonormal null
 directions, at most ``max_free_per_joint`` per joint, masked (static shapes). The start z = 0 is
 the prior minimum-norm BC solution, i.e. the interpolation compiler's answer with K = 4.
 
@@ -27,19 +26,20 @@ Optimisers (``OptimSettings.method``), batched over conditions (and starts):
     only every so many iterations, with damped BFGS updates in between.
   - ``"bfgs"``: the same trust-region loop with a quasi-Newton model instead of the Hessian (no
     second derivatives of the dynamics: ~10x cheaper per iteration on a CPU): the limit
-    penalty's exact Hessian (`penalty_model`) plus a damped-BFGS model of the torque cost,
-    started from its Gauss-Newton matrix (``initial_model``, `gauss_newton_model`). The model
-    is positive definite, so the step minimises it on the plane of the gradient and the Newton
-    step (`solvers.steps.subspace_step`; Nocedal & Wright, sec. 4.1; the Newton step by
-    `linalg.cholesky.cholesky_solve`): no eigendecomposition (on GPUs a cuSOLVER call per
-    iteration, 22 % of an iteration at 1,000 conditions on an H100).
+    penalty's exact Hessian (`compiler.search_objective.penalty_model`) plus a damped-BFGS model
+    of the torque cost, started from its Gauss-Newton matrix (``initial_model``,
+    `compiler.search_objective.gauss_newton_model`). The model is positive definite, so the step
+    minimises it on the plane of the gradient and the Newton step (`solvers.steps.subspace_step`;
+    Nocedal & Wright, sec. 4.1; the Newton step by `linalg.cholesky.cholesky_solve`): no
+    eigendecomposition (on GPUs a cuSOLVER call per iteration, 22 % of an iteration at 1,000
+    conditions on an H100).
   - ``"adam"``: plain ``optax.adam`` in z for ``max_iters`` steps (the paper's projected-gradient
     baseline, kept for comparison).
   - ``"lbfgs"``: ``optax.lbfgs`` with its zoom line search, stopped on the gradient norm.
 With ``n_starts > 1`` the optimiser also starts from random z (``start_scale`` rad RMS) and keeps
 the best result that is finite and within limits. The solvers themselves (`solvers`) know nothing
-of trajectories: this module sets up the reduced problems and their objective, hands them to one,
-and checks its results against the limits.
+of trajectories: this module sets up the reduced problems (`compiler.problems`) and their objective
+(`compiler.search_objective`), hands them to one, and checks its results against the limits.
 
 Measured (``benchmarks/optimality.py``, 100 conditions of the default synthetic database, T = 100,
 2 shared CPU cores; gap = (ours - SLSQP) / SLSQP on the float64 cost, same problem and start):
@@ -69,213 +69,44 @@ Example::
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import Basis, small_eigh, small_svd
-from evojax_motion.compiler.interpolation import (
-    BC_LEAK,
-    Boundary,
-    basis_functions,
-    boundary_residual,
-    solve_boundary,
-    trajectory,
+from evojax_motion.compiler.basis import Basis, small_eigh
+from evojax_motion.compiler.interpolation import Boundary, boundary_residual
+from evojax_motion.compiler.problems import Problem, problem_trajectory, reduced_problems
+from evojax_motion.compiler.search_objective import (
+    gauss_newton_model,
+    make_search_value,
+    penalty_model,
+    rate_bound,
 )
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
-from evojax_motion.linalg.reductions import sum_together
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.motion.objective import cost_from_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
+from evojax_motion.settings.compiler import OptimSettings
 from evojax_motion.solvers.base import Descent, HessianModel, SolverResult
 from evojax_motion.solvers.chunking import in_chunks, optimise_in_chunks
-from evojax_motion.solvers.quasi_newton import (
-    ExactHessian,
-    StructuredBFGS,
-    gauss_newton_matrix,
-)
+from evojax_motion.solvers.quasi_newton import ExactHessian, StructuredBFGS
 from evojax_motion.solvers.steps import ExactStep, SubspaceStep
 from evojax_motion.solvers.trust_region import trust_region
 
-METHODS = ("newton", "bfgs", "adam", "lbfgs")
-# Iteration budget of each method where ``max_iters`` is null (BFGS needs more, cheaper, ones:
-# with its subspace step, 40 left a median gap to SLSQP of 0.11-0.23 % at paper scale on an
-# H100, 50 gave 0.025 %; CHANGELOG.md).
-DEFAULT_ITERS = {"newton": 25, "bfgs": 50, "adam": 25, "lbfgs": 25}
 # Samples may exceed a joint limit by this much [rad] and still count as within it: float32
 # rounding of a BC that sits exactly on a limit.
 LIMIT_TOL = 1e-5
-# Null directions moving q by less than this fraction of the joint's largest one are dropped.
-DIRECTION_RTOL = 1e-5
 # BFGS's first model of the torque cost (``initial_model="gauss-newton"``): the Gauss-Newton
 # matrix on every GN_NODE_STRIDE-th search node (plus a ridge, `quasi_newton.INITIAL_RIDGE`).
 # Paper configuration, 100 conditions, 2 CPU cores (CHANGELOG.md): strides 1, 2, 3
 # and 5 took 20, 20, 18 and 21.5 iterations (median); strides 1 and 3 cost 74 and 25 ms per 300
 # conditions.
 GN_NODE_STRIDE = 3
-INITIAL_MODELS = ("gauss-newton", "identity")
-# Default `OptimSettings.max_batch` (chosen on an H200 with the fused search gradient: chunks
-# of ~3,000 problems ran 20-23 % faster than of ~4,000 at 30,000 and 100,000 conditions;
-# docs/scaling.md).
-MAX_BATCH = 3072
-
-
-def _check(ok: bool, name: str, expected: str, value) -> None:
-    if not ok:
-        raise ValueError(f"{name}: expected {expected}, got {value!r}")
-
-
-@dataclass(frozen=True)
-class OptimSettings:
-    """Settings of the movement compiler via optimisation.
-
-    - ``n_components``: principal components K of eq. 3 (paper: 4).
-    - ``method``: ``"newton"`` (default), ``"bfgs"``, ``"adam"`` or ``"lbfgs"`` (module docstring).
-    - ``max_iters``: iteration budget (Newton / BFGS / L-BFGS iterations, Adam steps); null: the
-      method's `DEFAULT_ITERS`.
-    - ``tol``: stop when the Newton decrement ``g.B^-1.g / 2`` falls below ``tol * |f|`` (Newton,
-      BFGS), or the gradient norm below ``tol * (1 + |f|)`` (L-BFGS; Adam runs its budget).
-    - ``hessian_every``: Newton only; refresh the exact Hessian every so many iterations (BFGS
-      updates in between).
-    - ``learning_rate``: Adam's step size [rad RMS of q per step].
-    - ``limit_margin`` [rad]: the penalty acts on ``[lower + margin, upper - margin]``.
-    - ``limit_penalty`` [cost units / rad^2 / s]: weight of the quadratic limit penalty (the
-      velocity and torque penalties' too, per (rad/s)^2 s and (N m)^2 s).
-    - ``limit_headroom`` [fraction]: where the robot has velocity or torque limits
-      (`model.robot.Robot.velocity_limit`, ``torque_limit``, handed to `optimise_prepared`), the
-      penalty also acts on ``|qd|`` and ``|tau|`` above ``(1 - limit_headroom) * limit``.
-      Without it 271-296 of the paper configuration's 300 offspring a generation went over the
-      Mahru arm's velocity limits and were discarded (CHANGELOG.md).
-    - ``n_starts``: starts per condition (1 = z = 0 only); ``start_scale``: spread of the others
-      [rad RMS of q]; ``seed``: the fixed key of those starts (deterministic).
-    - ``max_free_per_joint``: free null-space directions kept per joint (static size of z: J times
-      this). After both position BCs, K + 1 - 2 = 3 is all there can be; bases whose velocity BCs
-      bind too have fewer (the synthetic demonstrations at T = 100: 1 on ~90 % of the joints, 2
-      on the rest, so 2 keeps them all; 1 made the median gap 0.18 %). Fewer is cheaper: the
-      Newton step's Hessian costs one Hessian-vector product per direction.
-    - ``search_stride``: the optimiser's objective integrates over every ``search_stride``-th
-      sample (trapezoid, `search_nodes`); the result's cost is always eq. 5 on all T samples.
-      Stride 4 at T = 100 (``configs/catch_ball.yaml``): 5.5x faster, median gap to SLSQP
-      unchanged, p95 0.22 % instead of 0.046 % (``benchmarks/results/optimality_cpu_fast.json``).
-    - ``bc_leak`` [rad per rad]: BC directions that 1 rad RMS of motion changes by less than this
-      are free, the others are met exactly (`compiler.interpolation.BC_LEAK`).
-    - ``max_batch``: the most problems (conditions x starts) optimised at once; a larger batch is
-      split into equal chunks optimised one after another (`optimise_in_chunks`). On an H100 a
-      batch's time per problem doubled between 7,500 and 15,000 problems at once (most likely
-      its working set leaving the GPU's cache; not proven), and with BFGS's subspace step
-      chunks of ~4,000 ran 16-22 % faster than of ~7,700 at 30,000 and 100,000 conditions; with
-      the fused search gradient (`make_search_value`) on an H200, chunks of ~3,000 20-23 %
-      faster than of ~4,000 (`docs/scaling.md`); null: the whole batch at once.
-    - ``initial_model``: BFGS only, its first model of the torque cost: ``"gauss-newton"``
-      (`gauss_newton_model`: forward-mode Jacobians on a third of the nodes, ~3 optimiser
-      passes' cost; paper configuration: 18 iterations median instead of 36, and p95 gap to
-      SLSQP 1.1 % instead of 3.1 %, on the float32-rounded problems before
-      `compiler.interpolation.end_slopes`; 22 iterations median since, 19 since a rejected step
-      keeps
-      the model, `solvers.quasi_newton.StructuredBFGS`) or ``"identity"`` (a multiple of it, no
-      derivatives).
-    """
-
-    n_components: int = 4
-    method: str = "newton"
-    max_iters: int | None = None
-    tol: float = 1e-6
-    learning_rate: float = 0.1
-    limit_margin: float = 0.02
-    limit_penalty: float = 1e4
-    limit_headroom: float = 0.05
-    max_free_per_joint: int = 3
-    search_stride: int = 1
-    hessian_every: int = 1
-    n_starts: int = 1
-    start_scale: float = 1.0
-    seed: int = 0
-    bc_leak: float = BC_LEAK
-    max_batch: int | None = MAX_BATCH
-    initial_model: str = "gauss-newton"
-
-    def __post_init__(self):
-        _check(
-            isinstance(self.n_components, int) and self.n_components >= 1,
-            "n_components",
-            "an integer >= 1",
-            self.n_components,
-        )
-        _check(self.method in METHODS, "method", f"one of {METHODS}", self.method)
-        _check(
-            self.max_iters is None or (isinstance(self.max_iters, int) and self.max_iters >= 1),
-            "max_iters",
-            "an integer >= 1 or null",
-            self.max_iters,
-        )
-        _check(0 <= self.tol < 1, "tol", "a number in [0, 1)", self.tol)
-        _check(self.learning_rate > 0, "learning_rate", "a number > 0", self.learning_rate)
-        _check(
-            0 <= self.limit_margin < 0.5,
-            "limit_margin",
-            "a number in [0, 0.5) rad",
-            self.limit_margin,
-        )
-        _check(self.limit_penalty >= 0, "limit_penalty", "a number >= 0", self.limit_penalty)
-        _check(
-            0 <= self.limit_headroom < 1,
-            "limit_headroom",
-            "a fraction in [0, 1)",
-            self.limit_headroom,
-        )
-        _check(
-            isinstance(self.max_free_per_joint, int)
-            and 1 <= self.max_free_per_joint <= self.n_components,
-            "max_free_per_joint",
-            f"an integer in [1, n_components = {self.n_components}]",
-            self.max_free_per_joint,
-        )
-        _check(
-            isinstance(self.search_stride, int) and self.search_stride >= 1,
-            "search_stride",
-            "an integer >= 1",
-            self.search_stride,
-        )
-        _check(
-            isinstance(self.hessian_every, int) and self.hessian_every >= 1,
-            "hessian_every",
-            "an integer >= 1",
-            self.hessian_every,
-        )
-        _check(
-            isinstance(self.n_starts, int) and self.n_starts >= 1,
-            "n_starts",
-            "an integer >= 1",
-            self.n_starts,
-        )
-        _check(self.start_scale >= 0, "start_scale", "a number >= 0", self.start_scale)
-        _check(isinstance(self.seed, int), "seed", "an integer", self.seed)
-        _check(0 < self.bc_leak < 1, "bc_leak", "a number in (0, 1)", self.bc_leak)
-        _check(
-            self.max_batch is None or (isinstance(self.max_batch, int) and self.max_batch >= 1),
-            "max_batch",
-            "an integer >= 1 or null",
-            self.max_batch,
-        )
-        _check(
-            self.initial_model in INITIAL_MODELS,
-            "initial_model",
-            f"one of {INITIAL_MODELS}",
-            self.initial_model,
-        )
-
-    def resolved(self) -> OptimSettings:
-        """These settings with ``max_iters`` made concrete (`DEFAULT_ITERS` where it is null)."""
-        if self.max_iters is not None:
-            return self
-        return dataclasses.replace(self, max_iters=DEFAULT_ITERS[self.method])
 
 
 class Optimised(NamedTuple):
@@ -302,49 +133,15 @@ class Optimised(NamedTuple):
     peak_velocity: jnp.ndarray
 
 
-class Problem(NamedTuple):
-    """One condition's reduced problem: ``q(z) = q_ls + sum_jk z_jk Q_jk``.
-
-    q_ls: (T, J); dirs: (J, F, T) trajectories of the free null directions, orthonormal in q
-    with unit RMS (zero where masked); mask: (J, F) bool; duration: () [s]. The search objective
-    reads q, qd, qdd at its M quadrature nodes (`search_nodes`), linear in z too:
-    node_ls: (3, M, J) q, qd, qdd of ``q_ls``; node_dirs: (3, M, J, F) those of the directions;
-    node_w: (M,) the nodes' quadrature weights (summing to 1).
-    """
-
-    q_ls: jnp.ndarray
-    dirs: jnp.ndarray
-    mask: jnp.ndarray
-    duration: jnp.ndarray
-    node_ls: jnp.ndarray
-    node_dirs: jnp.ndarray
-    node_w: jnp.ndarray
-
-
-def search_nodes(grid: TimeGrid, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Quadrature nodes of the search objective: ``(index (M,), weights (M,))``.
-
-    Every ``stride``-th sample and the last; trapezoid weights on those nodes (summing to 1, so
-    ``int f dt = D * sum_m w_m f(s_m)``). ``stride = 1`` is the time grid's own quadrature.
-    """
-    t = len(grid.s)
-    idx = np.unique(np.append(np.arange(0, t, stride), t - 1))
-    s = np.asarray(grid.s, np.float64)[idx]
-    w = np.zeros(len(idx))
-    w[:-1] += 0.5 * np.diff(s)
-    w[1:] += 0.5 * np.diff(s)
-    return idx, w.astype(np.asarray(grid.w).dtype)
-
-
 class Prepared(NamedTuple):
     """A batch of C conditions made ready for the optimiser (`prepare_optimisation`): its B =
     ``n_starts * C`` problems (start-major) and what the optimiser starts from.
 
-    problems: `Problem` with ``(B, ...)`` arrays; z0, free: ``(B, J F)`` the start and the free
-    directions (bool); coeffs_ls: ``(C, J, K+1)`` the BC solution at z = 0; null: ``(C, J, K+1,
-    F)`` its free directions in the weights; initial: ``(B, J F, J F)`` BFGS's first model of
-    the torque cost (`gauss_newton_model` at z0), or None (other methods, or ``initial_model:
-    identity``).
+    problems: `compiler.problems.Problem` with ``(B, ...)`` arrays; z0, free: ``(B, J F)`` the
+    start and the free directions (bool); coeffs_ls: ``(C, J, K+1)`` the BC solution at z = 0;
+    null: ``(C, J, K+1, F)`` its free directions in the weights; initial: ``(B, J F, J F)``
+    BFGS's first model of the torque cost (`compiler.search_objective.gauss_newton_model` at
+    z0), or None (other methods, or ``initial_model: identity``).
     """
 
     problems: Problem
@@ -353,310 +150,6 @@ class Prepared(NamedTuple):
     coeffs_ls: jnp.ndarray
     null: jnp.ndarray
     initial: jnp.ndarray | None
-
-
-def _orthonormal_directions(null, funcs, mask):
-    """One joint's null directions made orthonormal in q: ``(null (K+1, F), dirs (F, T), mask)``.
-
-    Measured in prior units the torque optimum can lie hundreds of units away along directions
-    that barely move q (a first version optimised there: SLSQP needed ~100 iterations, Newton's
-    trust region ~10 just to grow). With z the RMS change of q [rad] along q-orthogonal
-    directions, a trust region, Adam's step size and random starts mean the same on every joint
-    and condition. Directions that do not move q (padding components) are masked out.
-    """
-    t = funcs.shape[1]
-    dirs = jnp.where(mask[:, None], null.T @ funcs, 0.0)  # (K, T)
-    # dirs = u diag(sv) vt, from the SVD of the tall dirs^T (`small_svd`: Jacobi on GPUs)
-    vt_t, sv, u_t = small_svd(dirs.T, full_matrices=False)
-    u, vt = u_t.T, vt_t.T
-    keep = sv > DIRECTION_RTOL * sv[0]
-    inv = jnp.where(keep, 1.0 / jnp.where(keep, sv, 1.0), 0.0)
-    root_t = jnp.sqrt(jnp.asarray(t, funcs.dtype))
-    new_null = root_t * (jnp.where(mask[None, :], null, 0.0) @ (u * inv[None, :]))
-    new_dirs = jnp.where(keep[:, None], root_t * vt, 0.0)
-    return new_null, new_dirs, keep
-
-
-def reduced_problems(
-    basis: Basis,
-    boundary: Boundary,
-    grid: TimeGrid,
-    n_components: int,
-    leak: float = BC_LEAK,
-    max_free: int | None = None,
-    stride: int = 1,
-) -> tuple[Problem, jnp.ndarray, jnp.ndarray]:
-    """The batch of reduced problems: ``(Problem (C, ...), coeffs_ls (C, J, K+1), null)``.
-
-    ``null: (C, J, K+1, F)`` maps z to coefficient changes; z is in rad (RMS over the samples) of
-    q-orthogonal directions per joint. ``max_free`` (F, static, default K): null directions kept
-    per joint, those the BCs constrain least. ``stride``: the search objective's nodes
-    (`search_nodes`).
-    """
-    sol = solve_boundary(basis, boundary, grid, n_components, leak=leak)
-    funcs = basis_functions(basis, n_components)  # (C, J, K+1, T)
-    q_ls = trajectory(basis, sol.coeffs)
-    # Keep F columns of the null space per joint: the least constrained (the last) of those that
-    # move q. A column can be free and still not move q (a zero component of a basis whose
-    # neighbours span fewer than K directions); keeping it would waste a slot of z.
-    f = n_components if max_free is None else max_free
-    moving = jnp.linalg.norm(jnp.einsum("cjkn,cjkt->cjnt", sol.null, funcs), axis=-1)
-    usable = sol.null_mask & (moving > DIRECTION_RTOL * jnp.max(moving, axis=-1, keepdims=True))
-    col = jnp.arange(n_components)
-    order = jnp.argsort(jnp.where(usable, -col, n_components + col), axis=-1)[..., :f]
-    null, dirs, mask = jax.vmap(jax.vmap(_orthonormal_directions))(
-        jnp.take_along_axis(sol.null, order[..., None, :], axis=-1),
-        funcs,
-        jnp.take_along_axis(sol.null_mask, order, axis=-1),
-    )
-    idx, w = search_nodes(grid, stride)
-    c, t, j = q_ls.shape
-    f = dirs.shape[2]
-    d_t = jnp.moveaxis(dirs, -1, 1).reshape(c, t, j * f)  # (C, T, J F)
-    node_ls = jnp.stack([q_ls, *derivatives(grid, q_ls, boundary.duration)], axis=1)
-    node_dirs = jnp.stack([d_t, *derivatives(grid, d_t, boundary.duration)], axis=1)
-    problem = Problem(
-        q_ls=q_ls,
-        dirs=dirs,
-        mask=mask,
-        duration=boundary.duration,
-        node_ls=node_ls[:, :, idx],
-        node_dirs=node_dirs[:, :, idx].reshape(c, 3, len(idx), j, f),
-        node_w=jnp.broadcast_to(jnp.asarray(w, q_ls.dtype), (c, len(idx))),
-    )
-    return problem, sol.coeffs, null
-
-
-def problem_trajectory(problem: Problem, z: jnp.ndarray) -> jnp.ndarray:
-    """``q (T, J)`` of one condition at null-space coordinates ``z (J, K)``."""
-    return problem.q_ls + jnp.einsum("jk,jkt->tj", z, problem.dirs)
-
-
-def squared_violation(q, lo, hi):
-    """``relu(q - hi)^2 + relu(lo - q)^2``, elementwise (arrays or scalars)."""
-    return jnp.maximum(q - hi, 0.0) ** 2 + jnp.maximum(lo - q, 0.0) ** 2
-
-
-def limit_penalty(w, q, duration, lo, hi, weight) -> jnp.ndarray:
-    """``weight * int relu(q - hi)^2 + relu(lo - q)^2 dt`` for ``q (M, J)`` at nodes with
-    quadrature weights ``w (M,)``: a scalar."""
-    viol = squared_violation(q, lo, hi)
-    return weight * duration * jnp.sum(jnp.asarray(w, q.dtype) * jnp.sum(viol, axis=-1))
-
-
-def rate_bound(limit, margin: float, dtype) -> jnp.ndarray | None:
-    """A velocity or torque penalty's bound ``(J,)`` [rad/s or N m]: ``limit (J,)`` (inf: none)
-    less the fraction ``margin`` of it, or None (no penalty) when every joint's is inf."""
-    if limit is None or not np.isfinite(np.asarray(limit)).any():
-        return None
-    return jnp.asarray((1.0 - margin) * np.asarray(limit, np.float64), dtype)
-
-
-def fused_products() -> bool:
-    """Whether the search objective forms q, qd, qdd at its nodes by elementwise products and a
-    sum (accelerators) or by an einsum (CPU, where `joint_lists` does not apply). Read at trace
-    time.
-
-    On 2 CPU cores the products made a paper-scale generation 4-23 % slower in an A/B
-    (CHANGELOG.md). On an H100 the einsum (a product over the 2 free directions per
-    joint, and in the gradient over the nodes) ran as a GEMM kernel of its own, 37 us of a 309
-    us optimiser pass at 1,000 conditions; as products XLA fuses it into the dynamics' kernels.
-    """
-    return jax.default_backend() != "cpu"
-
-
-def node_states(z, problem: Problem, joint_lists: bool = False):
-    """q, qd and qdd of one condition at its M search nodes for ``z (J, F)``: ``(3, M, J)``, or
-    with ``joint_lists`` three lists of J arrays ``(M,)``, each joint's formed from its own
-    slices of the node arrays (`joint_lists`: on the CPU, for dynamics that read them as they
-    are, `model.dynamics.Dynamics.form`).
-
-    Why joint by joint on the CPU: the gradient then reaches z joint by joint. Sliced from one
-    array, the cotangents are padded back into it, and XLA's CPU compiler emitted the RNEA's
-    adjoint as one loop over that array's elements that recomputed the shared adjoint for every
-    element: the value and gradient of the paper-scale batch took 9.6 ms there against 5.2 ms
-    this way (2 CPU cores, 300 conditions x 26 nodes; CHANGELOG.md). For the vector
-    layout, which stacks them again, lists made the float64 SLSQP reference 10 % slower.
-    """
-    if not joint_lists:
-        if fused_products():
-            return problem.node_ls + jnp.sum(z * problem.node_dirs, axis=-1)
-        return problem.node_ls + jnp.einsum(
-            "jf,amjf->amj", z, problem.node_dirs, precision=jax.lax.Precision.HIGHEST
-        )
-    ls, dirs = problem.node_ls, problem.node_dirs
-
-    def joint(a, j):
-        return ls[a, :, j] + sum(z[j, f] * dirs[a, :, j, f] for f in range(dirs.shape[-1]))
-
-    return [[joint(a, j) for j in range(ls.shape[-1])] for a in range(3)]
-
-
-def joint_lists(dyn: Dynamics) -> bool:
-    """Whether the search objective hands ``dyn`` joint-by-joint node states (`node_states`): on
-    the CPU, with the scalar RNEA layout. Read at trace time."""
-    return not fused_products() and dyn.form == "scalar"
-
-
-def penalty_model(z, problems: Problem, lo, hi, weight, vmax=None):
-    """Gradient ``(B, J F)`` and Hessian ``(B, J F, J F)`` of `limit_penalty` at the search
-    nodes for a batch of problems at ``z (B, J F)``, in closed form (q and qd are linear in z,
-    the penalty a sum of squared violations): per joint, ``2 weight D sum_m w_m v_m d_m`` and
-    ``2 weight D sum_m w_m [q_m outside] d_m d_m^T``, ``d_m (F,)`` the joint's directions at
-    node m, ``v_m`` its signed violation; joints do not mix (block diagonal). With ``vmax (J,)``
-    the same for the velocity penalty on ``[-vmax, vmax]`` (`rate_bound`), qd's
-    directions in place of q's. The BFGS method's exact part of its model
-    (`solvers.quasi_newton.StructuredBFGS`'s ``known``).
-
-    Elementwise products summed over the nodes in one reduction (`sum_together`): as einsums,
-    on 2 CPU cores, the Hessian's blocks alone were a dot of ~0.35 ms a pass at paper scale (in
-    a profiler trace), the whole model 800 against 257 us a call now."""
-    b, _, _, j, f = problems.node_dirs.shape
-    zf = z.reshape(b, 1, j, f)
-    c = ((2.0 * weight * problems.duration)[:, None] * problems.node_w)[:, :, None]  # (B, M, 1)
-    pairs = [(k, m) for k in range(f) for m in range(k, f)]
-    bounds = [(0, lo, hi)] if vmax is None else [(0, lo, hi), (1, -vmax, vmax)]
-    terms: list[list[jnp.ndarray]] = [[] for _ in range(f + len(pairs))]
-    for order, low, high in bounds:
-        dirs = problems.node_dirs[:, order]  # (B, M, J, F)
-        x = problems.node_ls[:, order] + sum(zf[..., k] * dirs[..., k] for k in range(f))
-        viol = jnp.maximum(x - high, 0.0) - jnp.maximum(low - x, 0.0)  # (B, M, J)
-        c_outside = jnp.where(viol != 0.0, c, 0.0)
-        for k in range(f):
-            terms[k].append(c * viol * dirs[..., k])
-        for i, (k, m) in enumerate(pairs):
-            terms[f + i].append(c_outside * dirs[..., k] * dirs[..., m])
-    sums = sum_together([functools.reduce(jnp.add, t) for t in terms], axis=1)  # each (B, J)
-    g = jnp.stack(sums[:f], axis=-1)  # (B, J, F)
-    pair_of = np.array([[pairs.index((min(k, m), max(k, m))) for m in range(f)] for k in range(f)])
-    blocks = jnp.stack(sums[f:], axis=-1)[..., pair_of]  # (B, J, F, F)
-    eye = jnp.eye(j, dtype=dirs.dtype)
-    h = blocks[:, :, :, None, :] * eye[None, :, None, :, None]  # (B, J, F, J, F)
-    return g.reshape(b, j * f), h.reshape(b, j * f, j * f)
-
-
-def gauss_newton_model(dyn: Dynamics, problems: Problem, z, every: int):
-    """Gauss-Newton model ``D sum_m w_m J_m^T J_m`` of the torque cost's Hessian for a batch of
-    problems at ``z (B, J F)``: ``(B, J F, J F)``, ``J_m = d tau_m / d z`` (forward mode) at every
-    ``every``-th search node, its weights scaled to the same total. The BFGS method's first
-    model of the torque cost (`solvers.quasi_newton.StructuredBFGS`'s ``initial``)."""
-    j, f = problems.node_dirs.shape[3:]
-    w = problems.node_w[:, ::every]
-    w = w * (jnp.sum(problems.node_w, axis=1) / jnp.sum(w, axis=1))[:, None]
-    nodes = problems.node_ls[:, :, ::every], problems.node_dirs[:, :, ::every]
-    sub = problems._replace(node_ls=nodes[0], node_dirs=nodes[1], node_w=w)
-
-    def residual(zf, prob: Problem):
-        tau = jax.vmap(dyn.inverse)(*node_states(zf.reshape(j, f), prob, joint_lists(dyn)))
-        return tau * jnp.sqrt(prob.duration * prob.node_w)[:, None]
-
-    return gauss_newton_matrix(residual, z, sub)
-
-
-def make_objective(dyn: Dynamics, lo, hi, weight, vmax=None, taumax=None):
-    """``f(z, problem) -> (penalised objective, torque cost)`` for one condition, both by the
-    problem's quadrature nodes (`search_nodes`; stride 1: the time grid's, eq. 5 exactly).
-    The penalty: `limit_penalty` on q in ``[lo, hi]`` and, with ``vmax (J,)`` / ``taumax
-    (J,)``, on qd in ``[-vmax, vmax]`` / tau in ``[-taumax, taumax]`` (`rate_bound`).
-
-    q, qd and qdd are linear in z, so one evaluation is a product with the precomputed node
-    arrays of `Problem` (`node_states`) and the inverse dynamics at the M nodes (no derivative
-    operators).
-    """
-
-    def objective(z, problem: Problem):
-        lists = joint_lists(dyn)
-        q, qd, qdd = node_states(z, problem, lists)
-        tau = jax.vmap(dyn.inverse)(q, qd, qdd)
-        w = problem.node_w.astype(tau.dtype)
-        cost = 0.5 * problem.duration * jnp.sum(w * jnp.sum(tau**2, -1))
-        q_nodes, qd_nodes = (jnp.stack(x, axis=-1) if lists else x for x in (q, qd))
-        penalty = limit_penalty(w, q_nodes, problem.duration, lo, hi, weight)
-        if vmax is not None:
-            penalty += limit_penalty(w, qd_nodes, problem.duration, -vmax, vmax, weight)
-        if taumax is not None:
-            penalty += limit_penalty(w, tau, problem.duration, -taumax, taumax, weight)
-        return cost + penalty, cost
-
-    return objective
-
-
-def fused_search_gradient(dyn: Dynamics) -> bool:
-    """Whether `make_search_value` evaluates the gradient in one reduction over the nodes: where
-    ``dyn`` has unstacked torques (`Dynamics.torques`: the scalar RNEA layout, on accelerators
-    and in the CPU's fast path, `cpu_fast_path`).
-
-    On the CPU it is what makes the fast path fast (`make_search_value`). On one H200 it was
-    faster too (a generation at 1,000 / 10,000 conditions 8.54 / 45.5 ms against 10.15 / 59.6
-    ms; CHANGELOG.md): the value and gradient of a pass are ~10 kernels there."""
-    return dyn.torques is not None
-
-
-def make_search_value(dyn: Dynamics, lo, hi, weight, method: str, vmax=None, taumax=None):
-    """``f(z (J, F), problem) -> penalised objective``: `make_objective`'s first output, for the
-    optimiser of ``method`` (`METHODS`).
-
-    For the first-order methods (BFGS, Adam and L-BFGS, which take no second derivatives of
-    ``f``; Newton takes its Hessian) where `fused_search_gradient`, ``f`` has a custom VJP. Its
-    forward pass evaluates the value and the gradient as one reduction over the nodes with
-    1 + J F outputs (`sum_together`): each node's gradient with respect to its q, qd and qdd
-    by reverse mode on that node's scalars (`Dynamics.torques`), contracted with the node's
-    directions. The value alone (the trial steps) is one reduction too.
-
-    Why: XLA's CPU compiler emits one loop per output array and recomputes in each loop what
-    the loops share. Autodiff of the stacked torques gave 21 cotangent arrays per node (q, qd,
-    qdd of 7 joints), each a loop that recomputed the recursion and its adjoint; the stacked
-    torques themselves were a loop that evaluated the recursion once per joint. The outputs of
-    one reduction come from one loop, where XLA computes what they share once: value and
-    gradient of the paper-scale batch 1.0-1.2 against 7.9-10.2 ms, the value 0.7 against 2.7 ms
-    (2 CPU cores; CHANGELOG.md). Otherwise ``f`` is `make_objective`'s first output.
-    """
-    if method == "newton" or not fused_search_gradient(dyn):
-        objective = make_objective(dyn, lo, hi, weight, vmax, taumax)
-        return lambda z, problem: objective(z, problem)[0]
-    torques = dyn.torques
-    assert torques is not None  # fused_search_gradient
-
-    def node_parts(q, qd, qdd):
-        """Torque and penalty integrands at one node: q, qd, qdd sequences of J scalars."""
-        viol = sum(squared_violation(q[k], lo[k], hi[k]) for k in range(len(q)))
-        if vmax is not None:
-            viol += sum(squared_violation(qd[k], -vmax[k], vmax[k]) for k in range(len(qd)))
-        tau = torques(q, qd, qdd)
-        if taumax is not None:
-            viol += sum(squared_violation(t, -taumax[k], taumax[k]) for k, t in enumerate(tau))
-        return 0.5 * sum(t * t for t in tau), weight * viol
-
-    def node_value(q, qd, qdd):
-        torque, penalty = node_parts(q, qd, qdd)
-        return torque + penalty
-
-    def scaled_nodes(problem: Problem):
-        return (problem.duration * problem.node_w).astype(problem.node_ls.dtype)  # (M,)
-
-    @jax.custom_vjp
-    def value(z, problem: Problem):
-        torque, penalty = jax.vmap(node_parts)(*node_states(z, problem, joint_lists=True))
-        scale = scaled_nodes(problem)
-        sums = sum_together([scale * torque, scale * penalty])
-        return sums[0] + sums[1]
-
-    def fwd(z, problem: Problem):
-        j, f = z.shape
-        states = node_states(z, problem, joint_lists=True)
-        h, gs = jax.vmap(jax.value_and_grad(node_value, argnums=(0, 1, 2)))(*states)
-        scale, dirs = scaled_nodes(problem), problem.node_dirs  # (M,), (3, M, J, F)
-        grads = [
-            sum(gs[a][k] * dirs[a, :, k, m] for a in range(3)) for k in range(j) for m in range(f)
-        ]
-        sums = sum_together([scale * t for t in (h, *grads)])
-        return sums[0], jnp.stack(sums[1:]).reshape(j, f)
-
-    def bwd(g, ct):
-        return ct * g, None  # no cotangent for the problem's arrays
-
-    value.defvjp(fwd, bwd)
-    return value
 
 
 def fixed_trip_loops() -> bool:
@@ -678,10 +171,11 @@ def fixed_trip_loops() -> bool:
 def run_solver(
     settings: OptimSettings, fun: Callable, z0, free, known=None, initial=None
 ) -> SolverResult:
-    """The solver of ``settings.method`` (`METHODS`; ``settings`` resolved) on B problems
-    ``fun(z (n,), i) -> scalar`` from ``z0 (B, n)``, moving the ``free (B, n)`` coordinates.
-    BFGS only: ``known`` the cheap part of the objective (`penalty_model`), ``initial (B, n,
-    n)`` the first model of the rest (`gauss_newton_model`) or None
+    """The solver of ``settings.method`` (`settings.compiler.METHODS`; ``settings`` resolved) on
+    B problems ``fun(z (n,), i) -> scalar`` from ``z0 (B, n)``, moving the ``free (B, n)``
+    coordinates. BFGS only: ``known`` the cheap part of the objective
+    (`compiler.search_objective.penalty_model`), ``initial (B, n, n)`` the first model of the
+    rest (`compiler.search_objective.gauss_newton_model`) or None
     (`solvers.quasi_newton.StructuredBFGS`)."""
     method, max_iters = settings.method, settings.max_iters
     assert max_iters is not None  # `OptimSettings.resolved`
@@ -747,7 +241,8 @@ def optimise_prepared(
     problems of ``prep`` (`prepare_optimisation` with the same ``dyn``, ``grid`` and
     ``settings``), each result's eq. 5 cost on the full grid and the best start per
     condition. ``velocity_limit`` [rad/s], ``torque_limit`` [N m]: ``(J,)`` (inf: none) or
-    None, penalised beyond ``1 - settings.limit_headroom`` of them (`rate_bound`); static."""
+    None, penalised beyond ``1 - settings.limit_headroom`` of them
+    (`compiler.search_objective.rate_bound`); static."""
     settings = settings.resolved()
     dtype = prep.z0.dtype
     lower = jnp.asarray(lower, dtype)

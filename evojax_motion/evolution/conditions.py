@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings, pca_basis, select_neighbours
+from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, compile_interpolation
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
@@ -42,6 +42,7 @@ from evojax_motion.motion.angles import posture_on_rest_branch
 from evojax_motion.motion.database import Database, human_mask
 from evojax_motion.motion.timegrid import TimeGrid
 from evojax_motion.run.cache import TracedProgram, traced_program
+from evojax_motion.settings.compiler import BasisSettings
 
 if TYPE_CHECKING:
     from evojax_motion.evolution.step import EvolutionSettings

@@ -31,14 +31,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_motion.compiler.basis import (
-    BasisSettings,
     neighbour_candidates,
     pca_basis,
     select_neighbours,
     select_neighbours_among,
 )
 from evojax_motion.compiler.optimisation import (
-    OptimSettings,
     Prepared,
     checked_limits,
     cpu_fast_path,
@@ -52,6 +50,7 @@ from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.database import EVOLVED, Database, count_human
 from evojax_motion.motion.objective import torque_sum, trajectory_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
+from evojax_motion.settings.compiler import BasisSettings, OptimSettings
 
 
 @dataclass(frozen=True)

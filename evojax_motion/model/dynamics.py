@@ -40,7 +40,7 @@ class Dynamics:
     """A robot's kinematics and inverse dynamics as pure single-sample functions.
 
     inverse: ``(q (J,), qd (J,), qdd (J,)) -> tau (J,)`` [N m or N], controlled joints only;
-    each input may also be a sequence of J scalars (`compiler.optimisation.node_states`).
+    each input may also be a sequence of J scalars (`compiler.problems.node_states`).
     site_pose: ``q (J,) -> (pos (3,), rot (3, 3))`` of ``robot.site_name``, world frame.
     body_positions: ``q (J,) -> (nbody, 3)`` world body origins (MuJoCo ``xpos``), for key points.
     form: the RNEA's layout (`model.rnea.make_rnea`), None for MJX. The ``"scalar"`` one

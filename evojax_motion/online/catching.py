@@ -37,7 +37,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
@@ -47,6 +46,7 @@ from evojax_motion.motion.timegrid import TimeGrid
 from evojax_motion.online.generation import OnlineResult, build_problem, finish_motion
 from evojax_motion.online.limits import joint_limits_f32
 from evojax_motion.online.reach import reach_query, resolve_settings
+from evojax_motion.settings.compiler import BasisSettings
 from evojax_motion.settings.online import CatchSettings, OnlineSettings
 
 

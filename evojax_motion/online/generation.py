@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings, pca_basis
+from evojax_motion.compiler.basis import pca_basis
 from evojax_motion.compiler.interpolation import (
     Boundary,
     boundary_residual,
@@ -62,6 +62,7 @@ from evojax_motion.online.limits import (
     usable_limits,
 )
 from evojax_motion.online.reach import Reach, reach_query, resolve_settings
+from evojax_motion.settings.compiler import BasisSettings
 from evojax_motion.settings.online import MAX_DURATION, OnlineSettings
 
 

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compiler.basis import BasisSettings, select_neighbours
+from evojax_motion.compiler.basis import select_neighbours
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics
@@ -26,6 +26,7 @@ from evojax_motion.model.ik import solve_ik
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import EVOLVED, Database
 from evojax_motion.online.limits import joint_limits_f32
+from evojax_motion.settings.compiler import BasisSettings
 from evojax_motion.settings.online import OnlineSettings
 
 

@@ -2,7 +2,7 @@
 
 On accelerators a batch's time per problem rises once its working set leaves the cache, so the
 optimisation compiler optimises at most ``OptimSettings.max_batch`` problems at once
-(`compiler.optimisation.MAX_BATCH`, `docs/scaling.md`).
+(`settings.compiler.MAX_BATCH`, `docs/scaling.md`).
 """
 
 from __future__ import annotations
