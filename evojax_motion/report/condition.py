@@ -10,6 +10,7 @@ import numpy as np
 
 from evojax_motion.errors import UserError
 from evojax_motion.report.run_folder import RunData
+from evojax_motion.settings.online import BALL_RADIUS
 
 INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant (as conditions.py)
 # The thrown ball of catch.gif: released this far from the catch point [m] (in front, a little to
@@ -261,6 +262,6 @@ def catch_camera(robot, q, balls):
 
     balls = np.asarray(balls, float)
     # the ball's extent: its centre +- the radius along each axis
-    offsets = kin.BALL_RADIUS * np.concatenate([np.eye(3), -np.eye(3)])
+    offsets = BALL_RADIUS * np.concatenate([np.eye(3), -np.eye(3)])
     points = (balls[:, None, :] + offsets[None]).reshape(-1, 3)
     return kin.fit_camera(robot, [q], kin.VIEWS["catch"], points)

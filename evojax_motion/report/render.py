@@ -41,8 +41,9 @@ import mujoco
 import numpy as np
 
 from evojax_motion.model.robot import Robot, robot_from_mjcf_text
-from evojax_motion.report.kinematics import BALL_RADIUS, BALL_RGBA, Camera, full_qpos
+from evojax_motion.report.kinematics import BALL_RGBA, Camera, full_qpos
 from evojax_motion.report.sticks import render_sticks
+from evojax_motion.settings.online import BALL_RADIUS
 
 GL_BACKENDS = ("egl", "osmesa")
 WORKER_TIMEOUT_S = 600.0

@@ -14,7 +14,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from evojax_motion.model.robot import Robot
-from evojax_motion.report.kinematics import BALL_RADIUS, BALL_RGBA, Camera, project, segments
+from evojax_motion.report.kinematics import BALL_RGBA, Camera, project, segments
+from evojax_motion.settings.online import BALL_RADIUS
 
 STICK_LABEL = "stick figure (fallback: no OpenGL)"
 
