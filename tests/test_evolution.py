@@ -10,13 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evojax_motion.evolution.step import (
-    EvolutionSettings,
     init_evolved_slots,
     rms_deviation_deg,
     select_survivors,
     write_slots,
 )
 from evojax_motion.motion.database import EVOLVED, HUMAN, make_database
+from evojax_motion.settings.evolution import EvolutionSettings
 
 # --------------------------------------------------------------------------- survivor selection
 

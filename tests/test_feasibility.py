@@ -49,10 +49,10 @@ def small_setup(robot, seed: int = 0):
     from evojax_motion.compiler.basis import BasisSettings
     from evojax_motion.compiler.optimisation import OptimSettings
     from evojax_motion.evolution.conditions import make_conditions
-    from evojax_motion.evolution.step import EvolutionSettings
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.motion.objective import torque_cost
     from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.settings.evolution import EvolutionSettings
 
     dyn = make_dynamics(robot, "rnea")
     grid = make_time_grid(T_SAMPLES)

@@ -835,8 +835,8 @@ def test_a_run_folder_of_an_older_version_resumes_with_new_keys_at_their_default
     another config."""
     import yaml
 
-    from evojax_motion.run.training import TrainSettings
     from evojax_motion.settings import config_to_dict, load_config
+    from evojax_motion.settings.run import TrainSettings
 
     default = TrainSettings().checkpoint_every
     mine = config_to_dict(load_config(TINY, [f"train.checkpoint_every={default}"]))
@@ -908,7 +908,7 @@ def test_cli_refuses_another_configs_run(tiny_run, capsys):
     ],
 )
 def test_train_settings_reject_bad_values(field, value):
-    from evojax_motion.run.training import TrainSettings
+    from evojax_motion.settings.run import TrainSettings
 
     with pytest.raises(ValueError, match=rf"^{field}: expected"):
         TrainSettings(**{field: value})

@@ -44,7 +44,7 @@ from evojax_motion.motion.timegrid import TimeGrid
 from evojax_motion.run.cache import TracedProgram, traced_program
 
 if TYPE_CHECKING:
-    from evojax_motion.evolution.step import EvolutionSettings
+    from evojax_motion.settings.evolution import EvolutionSettings
 
 INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant
 

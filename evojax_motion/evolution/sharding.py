@@ -48,7 +48,6 @@ any other JAX call; ``jax.devices()`` then lists all hosts' devices and the mesh
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -64,33 +63,6 @@ from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.motion.database import Database
 
 CONDITION_AXIS = "conditions"
-
-
-@dataclass(frozen=True)
-class ParallelSettings:
-    """How a generation's conditions are spread over devices (config section ``parallel``).
-
-    - ``devices``: shard the conditions over the first ``devices`` of ``jax.devices()`` (the
-      devices of all hosts after ``jax.distributed.initialize``); ``null`` = all of them. With one
-      device the plain generation step runs on it.
-
-    Padding rule (fixed): with d devices the m conditions are padded to ``d * ceil(m / d)`` with
-    copies of the last condition marked as padding (NaN target). They never change the results of
-    the real conditions and are dropped before the step returns (module docstring).
-    """
-
-    devices: int | None = None
-
-    def __post_init__(self):
-        ok = self.devices is None or (
-            isinstance(self.devices, int)
-            and not isinstance(self.devices, bool)
-            and self.devices >= 1
-        )
-        if not ok:
-            raise ValueError(
-                f"devices: expected null (all) or an integer >= 1, got {self.devices!r}"
-            )
 
 
 def resolve_devices(devices: int | Sequence | None = None) -> list:

@@ -23,7 +23,6 @@ its first generation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -46,75 +45,12 @@ from evojax_motion.compiler.optimisation import (
     prepare_optimisation,
     validate_rate_limits,
 )
-from evojax_motion.errors import check_setting
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.database import EVOLVED, Database, count_human
 from evojax_motion.motion.objective import torque_sum, trajectory_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
-
-
-@dataclass(frozen=True)
-class EvolutionSettings:
-    """The evolution's settings; defaults are the paper's (sec. 4.2-4.4).
-
-    - ``conditions``: size m of the fixed condition set (paper: 300).
-    - ``generations``: generations to run (paper: 10).
-    - ``region_margin`` [m]: targets are drawn uniformly from the bounding box of the
-      demonstrations' hand positions grown by this margin on every side (negative shrinks it) ...
-    - ``min_neighbours``: ... and kept only where at least this many demonstrations lie within
-      ``basis.radius`` (so each condition has a basis: where the robot will work).
-    - ``candidates_per_condition``: oversampling factor of that rejection sampling.
-    - ``ik_tolerance`` [m]: a target whose human-like IK posture misses it by more is rejected.
-    - ``duration`` [s]: duration of every condition's motion; ``null`` = its neighbours' mean.
-    - ``bc_tolerance`` [rad], ``bc_velocity_tolerance`` [rad/s]: offspring whose start/end joint
-      angles (velocities) miss the boundary conditions by more are discarded. Velocities get a
-      looser bound: the demonstrations start and end at rest, so the velocity rows of the BC
-      system are numerically degenerate (``compile_interp``) and are met only to the finite
-      difference accuracy of the time grid (a few 1e-2 rad/s at T = 32).
-    """
-
-    conditions: int = 300
-    generations: int = 10
-    region_margin: float = 0.0
-    min_neighbours: int = 5
-    candidates_per_condition: int = 8
-    ik_tolerance: float = 0.005
-    duration: float | None = None
-    bc_tolerance: float = 1e-3
-    bc_velocity_tolerance: float = 0.1
-
-    def __post_init__(self):
-        check_setting(self.conditions >= 1, "conditions", "an integer >= 1", self.conditions)
-        check_setting(self.generations >= 1, "generations", "an integer >= 1", self.generations)
-        check_setting(
-            abs(self.region_margin) < 10.0, "region_margin", "|margin| < 10 m", self.region_margin
-        )
-        check_setting(
-            self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours
-        )
-        check_setting(
-            self.candidates_per_condition >= 1,
-            "candidates_per_condition",
-            "an integer >= 1",
-            self.candidates_per_condition,
-        )
-        check_setting(self.ik_tolerance > 0, "ik_tolerance", "a number > 0 [m]", self.ik_tolerance)
-        check_setting(
-            self.duration is None or self.duration > 0,
-            "duration",
-            "null or a number > 0 [s]",
-            self.duration,
-        )
-        check_setting(
-            self.bc_tolerance > 0, "bc_tolerance", "a number > 0 [rad]", self.bc_tolerance
-        )
-        check_setting(
-            self.bc_velocity_tolerance > 0,
-            "bc_velocity_tolerance",
-            "a number > 0 [rad/s]",
-            self.bc_velocity_tolerance,
-        )
+from evojax_motion.settings.evolution import EvolutionSettings
 
 
 class Selection(NamedTuple):

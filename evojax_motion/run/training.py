@@ -31,7 +31,6 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -74,38 +73,6 @@ METRIC_FIELDS = (
     "bc_velocity_residual_max",
     "converged_fraction",
 )
-
-
-@dataclass(frozen=True)
-class TrainSettings:
-    """Run bookkeeping.
-
-    - ``max_to_keep``: checkpoints kept (>= 2, so a damaged latest one has a predecessor).
-    - ``checkpoint_every``: a checkpoint after every this many generations and after the last
-      (>= 1); a resumed run restarts from the newest one and computes the generations after it
-      again (to the same results). With a checkpoint after every generation, a generation's
-      files took 44 ms on 2 CPU cores and 145 ms on one H100 machine, more than a paper-scale
-      generation on a GPU (~8 ms): there a run checkpointing every generation made 6.6
-      generations/s, every 10th 84 (`benchmarks/train_loop.py`).
-    - ``plot_condition``: index of the condition drawn in ``plots/joint_angles.png`` (Fig. 8);
-      ``null``: the one whose cost fell most from generation 1 to the last.
-    - ``plots``: write the figures.
-    """
-
-    max_to_keep: int = 3
-    checkpoint_every: int = 10
-    plot_condition: int | None = None
-    plots: bool = True
-
-    def __post_init__(self):
-        if not (isinstance(self.max_to_keep, int) and self.max_to_keep >= 2):
-            raise ValueError(f"max_to_keep: expected an integer >= 2, got {self.max_to_keep!r}")
-        n = self.checkpoint_every
-        if not (isinstance(n, int) and not isinstance(n, bool) and n >= 1):
-            raise ValueError(f"checkpoint_every: expected an integer >= 1, got {n!r}")
-        c = self.plot_condition
-        if c is not None and not (isinstance(c, int) and c >= 0):
-            raise ValueError(f"plot_condition: expected null or an integer >= 0, got {c!r}")
 
 
 # ----------------------------------------------------------------------------- run folder checks

@@ -33,10 +33,9 @@ from evojax_motion.compiler.basis import BasisSettings
 from evojax_motion.compiler.optimisation import OptimSettings
 from evojax_motion.demonstrations.synthetic import DemoSettings
 from evojax_motion.errors import UserError
-from evojax_motion.evolution.sharding import ParallelSettings
-from evojax_motion.evolution.step import EvolutionSettings
 from evojax_motion.online.generation import MAX_DURATION
-from evojax_motion.run.training import TrainSettings
+from evojax_motion.settings.evolution import EvolutionSettings, ParallelSettings
+from evojax_motion.settings.run import TrainSettings
 
 DYNAMICS_BACKENDS = ("rnea", "mjx")
 # Every integer of a config is a size, an index or a seed that ends up in an int32 (array shapes,
