@@ -194,7 +194,7 @@ def test_count_over_limits_of_human_rows(mahru):
 
 
 def test_metric_fields_are_the_generation_stats():
-    from evojax_motion.evolution.step import GenerationStats
+    from evojax_motion.evolution.stats import GenerationStats
     from evojax_motion.run.training import METRIC_FIELDS
 
     assert METRIC_FIELDS[3:] == GenerationStats._fields

@@ -132,7 +132,7 @@ def test_padded_slots_are_never_neighbours():
 
 
 def _stats(**values):
-    from evojax_motion.evolution.step import GenerationStats
+    from evojax_motion.evolution.stats import GenerationStats
 
     base = dict.fromkeys(GenerationStats._fields, np.float32(1.5))
     base.update(values)
@@ -163,7 +163,7 @@ def test_combine_stats_weights_by_offspring_past_every_rejection():
     import jax
 
     from evojax_motion.evolution.sharding import CONDITION_AXIS, combine_stats
-    from evojax_motion.evolution.step import GenerationStats
+    from evojax_motion.evolution.stats import GenerationStats
 
     n_local = 10
     a = _stats(n_rejected_torque=np.int32(3), n_rejected_velocity=np.int32(2),

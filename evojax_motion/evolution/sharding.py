@@ -58,7 +58,8 @@ from jax.sharding import PartitionSpec as P
 
 from evojax_motion.compiler.optimisation import cpu_fast_path
 from evojax_motion.errors import UserError
-from evojax_motion.evolution.step import GenerationStats, generation_stages, generation_step
+from evojax_motion.evolution.stats import GenerationStats
+from evojax_motion.evolution.step import generation_stages, generation_step
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.motion.database import Database
 
@@ -138,11 +139,11 @@ def pad_database(db: Database, extra: int) -> Database:
 
 # How the per-device statistics combine into those of the whole condition set. Every field of
 # `GenerationStats` needs a rule: a new statistic without one fails at import, not silently.
-# Counts are the fields named ``n_*``; the offspring rejections (``n_rejected_*``) exclude each
-# other, so the accepted offspring are the rest.
+# Counts are the fields named ``n_*``, maxima those named ``*_max``; the offspring rejections
+# (``n_rejected_*``) exclude each other, so the accepted offspring are the rest.
 _SUMS = tuple(f for f in GenerationStats._fields if f.startswith("n_"))
 _REJECTIONS = tuple(f for f in _SUMS if f.startswith("n_rejected_"))
-_MAXIMA = ("bc_residual_max", "bc_velocity_residual_max")
+_MAXIMA = tuple(f for f in GenerationStats._fields if f.endswith("_max"))
 _MEAN_OVER_ACCEPTED = ("offspring_cost_mean",)
 _MEAN_OVER_VALID = ("db_cost_mean", "torque_sum_mean", "human_deviation_deg")
 _MEAN_OVER_ALL = ("converged_fraction",)

@@ -45,7 +45,9 @@ from evojax_motion.compiler.optimisation import (
     prepare_optimisation,
     validate_rate_limits,
 )
+from evojax_motion.evolution.stats import GenerationStats
 from evojax_motion.linalg.precision import exact_matmuls
+from evojax_motion.linalg.reductions import masked_mean
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.database import EVOLVED, Database, count_human
 from evojax_motion.motion.objective import torque_sum, trajectory_torques
@@ -103,26 +105,6 @@ def write_slots(db: Database, n_human: int, sel: Selection) -> Database:
     )
 
 
-class GenerationStats(NamedTuple):
-    """Scalars of one generation (``metrics.jsonl``; see `make_generation_step`)."""
-
-    offspring_cost_mean: jnp.ndarray
-    db_cost_mean: jnp.ndarray
-    torque_sum_mean: jnp.ndarray
-    human_deviation_deg: jnp.ndarray
-    n_replaced: jnp.ndarray
-    n_rejected_nonfinite: jnp.ndarray
-    n_rejected_limits: jnp.ndarray
-    n_rejected_torque: jnp.ndarray
-    n_rejected_velocity: jnp.ndarray
-    n_rejected_bc: jnp.ndarray
-    n_valid: jnp.ndarray
-    n_short: jnp.ndarray
-    bc_residual_max: jnp.ndarray
-    bc_velocity_residual_max: jnp.ndarray
-    converged_fraction: jnp.ndarray
-
-
 def init_evolved_slots(humans: Database, conditions) -> Database:
     """Database of capacity ``n_human + m``: the human rows, then one empty slot per condition.
 
@@ -146,11 +128,6 @@ def init_evolved_slots(humans: Database, conditions) -> Database:
         valid=cat(humans.valid, False),
         generation=cat(humans.generation, 0),
     )
-
-
-def _masked_mean(x, mask):
-    n = jnp.sum(mask)
-    return jnp.where(n > 0, jnp.sum(jnp.where(mask, x, 0.0)) / jnp.maximum(n, 1), jnp.nan)
 
 
 def boundary_errors(grid: TimeGrid, q, boundary):
@@ -340,10 +317,10 @@ def generation_stages(
         tsum = jax.vmap(lambda t: torque_sum(grid, t))(tau)
         dev = rms_deviation_deg(sel.q, conditions.human_q)
         stats = GenerationStats(
-            offspring_cost_mean=_masked_mean(off.cost, accept),
-            db_cost_mean=_masked_mean(sel.cost, sel.valid),
-            torque_sum_mean=_masked_mean(tsum, sel.valid),
-            human_deviation_deg=_masked_mean(dev, sel.valid),
+            offspring_cost_mean=masked_mean(off.cost, accept),
+            db_cost_mean=masked_mean(sel.cost, sel.valid),
+            torque_sum_mean=masked_mean(tsum, sel.valid),
+            human_deviation_deg=masked_mean(dev, sel.valid),
             n_replaced=jnp.sum(sel.replaced).astype(jnp.int32),
             n_rejected_nonfinite=jnp.sum(~finite).astype(jnp.int32),
             n_rejected_limits=jnp.sum(finite & ~in_range).astype(jnp.int32),

@@ -47,6 +47,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from evojax_motion.console import log
 from evojax_motion.errors import UserError
 
 # The run folder's files (train.py writes them; names repeated here so that reading a report needs
@@ -150,10 +151,6 @@ class Report:
     @property
     def complete(self) -> bool:
         return not self.problems and not self.skipped
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 # --------------------------------------------------------------------------------- reading
@@ -743,7 +740,7 @@ def make_report(
             raise UserError(
                 f"--joint: expected one of {list(ctx.robot.joint_names)}, got {joint!r}"
             )
-    say = (lambda msg: None) if quiet else _log
+    say = (lambda msg: None) if quiet else log
     for msg in rep.problems.values():
         say(f"warning: {msg}")
     if renderer != "stick":

@@ -29,14 +29,15 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from evojax_motion.console import log
 from evojax_motion.errors import UserError
+from evojax_motion.evolution.stats import GenerationStats
 
 if TYPE_CHECKING:
     from evojax_motion.motion.objective import CostProgram
@@ -56,22 +57,7 @@ METRIC_FIELDS = (
     "seconds",  # wall time from the previous generation's result (or the loop's start) to this
     # one's: the generation's execution, overlapped with writing the previous one's files
     "finished_at",  # Unix time [s] at its end (time to first generation, gaps on resume)
-    # then `evolution.step.GenerationStats`' fields, in order (not imported here: no JAX at import)
-    "offspring_cost_mean",
-    "db_cost_mean",
-    "torque_sum_mean",
-    "human_deviation_deg",
-    "n_replaced",
-    "n_rejected_nonfinite",
-    "n_rejected_limits",
-    "n_rejected_torque",
-    "n_rejected_velocity",
-    "n_rejected_bc",
-    "n_valid",
-    "n_short",
-    "bc_residual_max",
-    "bc_velocity_residual_max",
-    "converged_fraction",
+    *GenerationStats._fields,  # `evolution.stats.GenerationStats`, in order
 )
 
 
@@ -241,10 +227,6 @@ def _numpy_db(db):
     return Database(*(np.asarray(a) for a in db))
 
 
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
 # ---------------------------------------------------------------------------------- the run
 
 
@@ -321,7 +303,7 @@ def initial_state(cfg: Config, robot, dyn, setup: SetupPrograms | None = None, o
     bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
     for i in bad:
         msg = f"demonstration {i}: NaN/inf in its trajectory, condition or cost; not used"
-        _log(f"warning: {msg}")
+        log(f"warning: {msg}")
     if bad.size == humans.valid.size:
         raise UserError("demonstrations: expected at least one finite demonstration, got none")
     humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
@@ -352,11 +334,11 @@ def _restore(out: Path, manager, cfg: Config, robot):
     check_database_matches_robot(meta, robot, str(out / DB_INITIAL))
     restored, problems = ck.restore_latest(manager, checkpoint_template(cfg, db_init))
     for p in problems:
-        _log(f"warning: {p}")
+        log(f"warning: {p}")
     if restored is None:
-        _log("warning: no usable checkpoint; starting the run again from generation 0")
+        log("warning: no usable checkpoint; starting the run again from generation 0")
     else:
-        _log(f"resuming after generation {restored.step} (checkpoint {restored.step})")
+        log(f"resuming after generation {restored.step} (checkpoint {restored.step})")
     for step in manager.all_steps():
         if restored is None or step > restored.step:
             manager.delete(step)
@@ -445,7 +427,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             setup, cue = (None, None) if early is None else (early.setup, early.start)
             db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, setup, cue)
             start, metrics = 0, []
-            _log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
+            log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
     except BaseException:
         if early is not None:
             early.wait()  # its thread ends before the error reaches the user
