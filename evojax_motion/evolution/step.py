@@ -16,9 +16,8 @@ one jitted function ``step(db, conditions, generation) -> (db, GenerationStats)`
 generation (neighbours, PCA, optimisation, selection, metrics) is a single XLA program.
 `generation_stages` gives the same step as two programs, ``prepare`` (neighbours, PCA, the reduced
 problems, BFGS's first model) and ``finish`` (the optimiser, selection, metrics): a run compiles
-them side by side (`run.training.compile_generation_step`), which on 2 CPU cores shortens the wait
-for
-its first generation.
+them side by side (`run.compilation.compile_generation_step`), which on 2 CPU cores shortens the
+wait for its first generation.
 """
 
 from __future__ import annotations
