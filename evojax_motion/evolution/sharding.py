@@ -8,7 +8,7 @@ conditions are split over a 1-D device mesh (axis ``"conditions"``) and the data
 replicated: each device searches the neighbours of its own conditions in the whole database, and
 the new evolved slots are all-gathered so that every device holds the next generation's database.
 
-`make_sharded_generation_step` runs the unchanged step of ``evolution.py`` per device inside
+`make_sharded_generation_step` runs the unchanged step of `evolution.step` per device inside
 ``jax.shard_map`` (not the automatic SPMD partitioner: it replicates ``lax.top_k``, i.e. would
 all-gather the whole ``(m, N)`` distance matrix of the neighbour search). The compiled program
 holds only these collectives: all-gathers of the new evolved slots and all-reduces of scalar
@@ -19,7 +19,7 @@ Each device's local database is the whole global database (in its own order, so 
 indices and distance ties are those of one device) followed by copies of the device's incumbent
 slots with a NaN condition: the step wants its incumbents last, and the NaN keeps the copies out
 of the neighbour search. The price: the neighbour search of m/d conditions scans N + m/d entries
-instead of N (see docs/scaling.md for the hook in evolution.py that would remove it).
+instead of N (see docs/scaling.md for the hook in `evolution.step` that would remove it).
 
 Why the database stays replicated (not sharded and all-gathered for the neighbour search): every
 condition needs distances to all N entries and the trajectories of any k of them, so a sharded
@@ -238,10 +238,9 @@ def sharded_generation_step(
     velocity_limit=None,
 ):
     """``(step, compiler_options)``: `evolution.step.make_generation_step` with the conditions
-    sharded
-    over ``devices``, and the compiler options its jit carries
-    (`compiler.optimisation.cpu_fast_path`;
-    needed again by whoever compiles the step another way, e.g. `run.cache.compile_traced`).
+    sharded over ``devices``, and the compiler options its jit carries
+    (`compiler.optimisation.cpu_fast_path`; needed again by whoever compiles the step another
+    way, e.g. `run.cache.compile_traced`).
 
     Same arguments (``torque_limit``, ``velocity_limit`` as keywords) plus ``devices``
     (`resolve_devices`: ``None`` = all, an int = the first n, or a sequence); same contract: a

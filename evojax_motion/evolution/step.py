@@ -4,10 +4,9 @@ Genetic operator: every condition c of the fixed set (``conditions.py``) is comp
 movement compiler via optimisation (eq. 3-5) from a basis of its neighbours (eq. 6) in the current
 database; neighbour search sees the human originals and the survivors alike. Offspring that are not
 finite, leave the joint ranges, exceed a torque or velocity limit (peak |tau| or |qd| over the T
-samples; `model.robot.Robot.torque_limit`, ``velocity_limit``) or miss the boundary conditions (eq.
-2)
-are discarded (sec. 3.1, 5). An infinite limit (a continuous joint's range, a joint without torque
-or velocity limit) is never violated.
+samples; `model.robot.Robot.torque_limit`, ``velocity_limit``) or miss the boundary conditions
+(eq. 2) are discarded (sec. 3.1, 5). An infinite limit (a continuous joint's range, a joint
+without torque or velocity limit) is never violated.
 Survivor selection (sec. 4.3): slot ``n_human + c`` keeps the cheaper of incumbent and offspring by
 the eq. 5 cost, a batched argmin; the human originals (slots ``0 .. n_human-1``) never change.
 

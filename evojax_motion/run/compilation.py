@@ -47,8 +47,7 @@ class SetupPrograms(NamedTuple):
 
 def setup_programs(cfg: Config, robot, dyn, sizes: tuple[int, ...]) -> SetupPrograms:
     """The time grid, `CostProgram` and condition draw (`evolution.conditions.condition_programs`)
-    of a
-    run of ``cfg`` with ``sizes = (demonstrations, samples, joints)``."""
+    of a run of ``cfg`` with ``sizes = (demonstrations, samples, joints)``."""
     from evojax_motion.evolution.conditions import condition_programs
     from evojax_motion.motion.objective import CostProgram
     from evojax_motion.motion.timegrid import make_time_grid
