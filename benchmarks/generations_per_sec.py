@@ -59,11 +59,8 @@ from evojax_motion.evolution import step as evolution  # noqa: E402
 from evojax_motion.evolution.step import make_generation_step  # noqa: E402
 from evojax_motion.motion.database import count_human  # noqa: E402
 from evojax_motion.motion.timegrid import make_time_grid  # noqa: E402
-from evojax_motion.run.training import (  # noqa: E402
-    compile_generation_step,
-    generation_inputs,
-    initial_state,
-)
+from evojax_motion.run.compilation import compile_generation_step, generation_inputs  # noqa: E402
+from evojax_motion.run.training import initial_state  # noqa: E402
 from evojax_motion.run.workflow import make_robot_dynamics  # noqa: E402
 from evojax_motion.settings import config_from_dict, config_to_dict, load_config  # noqa: E402
 
@@ -114,7 +111,7 @@ def run_generations(compiled, db, conds, first: int, n: int):
 def compile_one_program(cfg, robot, dyn, db, conds):
     """The generation step as one XLA program (`evolution.step.make_generation_step`, as the sharded
     step runs it on each device), compiled for ``db`` and ``conds``; `train` compiles two on one
-    device (`run.training.compile_generation_step`)."""
+    device (`run.compilation.compile_generation_step`)."""
     grid = make_time_grid(db.q.shape[1])
     step = make_generation_step(dyn, grid, robot.lower, robot.upper, count_human(db),
                                 cfg.basis, cfg.compiler, cfg.evolution)  # fmt: skip

@@ -96,8 +96,8 @@ def build_problem(args):
     else:
         from evojax_motion.demonstrations.synthetic import generate_demonstrations
         from evojax_motion.evolution.conditions import make_conditions
-        from evojax_motion.evolution.step import EvolutionSettings
         from evojax_motion.settings.demonstrations import DemoSettings
+        from evojax_motion.settings.evolution import EvolutionSettings
 
         db, _ = generate_demonstrations(
             robot, dyn, DemoSettings(count=args.demos, samples=args.samples), k_demo

@@ -57,6 +57,7 @@ def main(argv=None) -> None:
     jax.config.update("jax_log_compiles", True)
 
     import evojax_motion.run.workflow as workflow
+    from evojax_motion.run import compilation
     from evojax_motion.run import training as train
     from evojax_motion.settings import load_config
 
@@ -73,7 +74,7 @@ def main(argv=None) -> None:
     workflow.demonstrations = timed_demos
     db, conditions, *_ = train.initial_state(cfg, robot, dyn)
     phase[0] = "generation step"
-    compile_step = getattr(train, "compile_generation_step", None)
+    compile_step = getattr(compilation, "compile_generation_step", None)
     if compile_step is not None:
         compile_step(cfg, robot, dyn, db, conditions)
     rows = [

@@ -1,7 +1,7 @@
 """Where a compiled generation's time goes on the device: a `jax.profiler` trace, summarised.
 
 Builds the configuration's generation step at ``--conditions`` as `train` runs it (compiled by
-`run.training.compile_generation_step`, inputs kept on the device), times ``--generations`` warm
+`run.compilation.compile_generation_step`, inputs kept on the device), times ``--generations`` warm
 generations, then traces ``--traced`` more and summarises the trace (`summarise_trace`):
 
 - device: kernels per generation, the time the busiest stream is busy (``busy_us``) and the
@@ -15,7 +15,7 @@ generations, then traces ``--traced`` more and summarises the trace (`summarise_
   from the compiled program's HLO, `trace_summary.kernel_sources`), which says where kernels
   are worth fusing (e.g. the optimiser's algebra against its dynamics).
 
-A step of two programs (`run.training.StagedStep`, one device) is traced program by program, each
+A step of two programs (`run.compilation.StagedStep`, one device) is traced program by program, each
 with
 its own HLO (the two name different kernels alike), and summarised together
 (`trace_summary.merge_stages`; each program's summary under ``stages``).
@@ -51,7 +51,7 @@ from dynamics_throughput import machine_info  # noqa: E402
 from generations_per_sec import build, run_generations  # noqa: E402
 from trace_summary import merge_stages, read_trace, summarise_trace  # noqa: E402
 
-from evojax_motion.run.training import (  # noqa: E402
+from evojax_motion.run.compilation import (  # noqa: E402
     StagedStep,
     compile_generation_step,
     generation_inputs,

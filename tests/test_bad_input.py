@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from evojax_motion.cli.entry import main
-from evojax_motion.run.training import EarlyCompile
+from evojax_motion.run.compilation import EarlyCompile
 from evojax_motion.settings import Config, config_to_dict, load_config
 
 REPO = Path(__file__).resolve().parents[1]
@@ -129,7 +129,7 @@ STARTED: list = []  # background compiles started since the last `check_refused`
 @pytest.fixture(scope="module", autouse=True)
 def _record_background_compiles():
     """A run refused over its inputs must not have started background compiles
-    (`run.training.EarlyCompile`): it would wait for them before saying what was wrong."""
+    (`run.compilation.EarlyCompile`): it would wait for them before saying what was wrong."""
     original = EarlyCompile.start
 
     def start(self):

@@ -10,13 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evojax_motion.evolution.step import (
-    EvolutionSettings,
     init_evolved_slots,
     rms_deviation_deg,
     select_survivors,
     write_slots,
 )
 from evojax_motion.motion.database import EVOLVED, HUMAN, make_database
+from evojax_motion.settings.evolution import EvolutionSettings
 
 # --------------------------------------------------------------------------- survivor selection
 
@@ -266,7 +266,8 @@ def test_conditions_are_the_first_qualifying_candidates_in_key_order(small):
     candidates miss the IK by centimetres, so that several batches are needed."""
     import jax
 
-    from evojax_motion.evolution.conditions import _masked_mean, make_conditions, sampling_box
+    from evojax_motion.evolution.conditions import make_conditions, sampling_box
+    from evojax_motion.linalg.reductions import masked_row_mean
     from evojax_motion.model.ik import solve_ik
     from evojax_motion.motion.database import make_database
 
@@ -292,7 +293,7 @@ def test_conditions_are_the_first_qualifying_candidates_in_key_order(small):
     order = np.argsort(dist, axis=1, kind="stable")[:, : basis.neighbours]
     final = humans.q[order, -1]
     mask = np.ones(order.shape, bool)
-    pref = _masked_mean(final, mask)
+    pref = masked_row_mean(final, mask)
     ik = solve_ik(dyn, cand, final[:, 0], robot.lower, robot.upper, q_pref=pref)
     near = np.flatnonzero((dist <= basis.radius).sum(1) >= evo.min_neighbours)
     first = near[np.asarray(ik.pos_error)[near] <= evo.ik_tolerance][:M_COND]

@@ -47,11 +47,11 @@ def small_setup(robot, seed: int = 0):
     import jax
 
     from evojax_motion.evolution.conditions import make_conditions
-    from evojax_motion.evolution.step import EvolutionSettings
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.motion.objective import torque_cost
     from evojax_motion.motion.timegrid import make_time_grid
     from evojax_motion.settings.compiler import BasisSettings, OptimSettings
+    from evojax_motion.settings.evolution import EvolutionSettings
 
     dyn = make_dynamics(robot, "rnea")
     grid = make_time_grid(T_SAMPLES)
@@ -193,7 +193,7 @@ def test_count_over_limits_of_human_rows(mahru):
 
 
 def test_metric_fields_are_the_generation_stats():
-    from evojax_motion.evolution.step import GenerationStats
+    from evojax_motion.evolution.stats import GenerationStats
     from evojax_motion.run.training import METRIC_FIELDS
 
     assert METRIC_FIELDS[3:] == GenerationStats._fields

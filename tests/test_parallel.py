@@ -37,7 +37,7 @@ COLLECTIVES = ("all-gather", "all-reduce", "all-to-all", "collective-permute", "
 
 @pytest.mark.parametrize("value", [0, -2, True, 1.5, "all"])
 def test_settings_reject_bad_devices(value):
-    from evojax_motion.evolution.sharding import ParallelSettings
+    from evojax_motion.settings.evolution import ParallelSettings
 
     with pytest.raises(ValueError, match=r"^devices: expected"):
         ParallelSettings(devices=value)
@@ -47,7 +47,8 @@ def test_settings_defaults_and_device_resolution():
     import jax
 
     from evojax_motion.errors import UserError
-    from evojax_motion.evolution.sharding import ParallelSettings, resolve_devices
+    from evojax_motion.evolution.sharding import resolve_devices
+    from evojax_motion.settings.evolution import ParallelSettings
 
     assert ParallelSettings().devices is None and ParallelSettings(devices=8).devices == 8
     assert resolve_devices(None) == jax.devices()
@@ -131,7 +132,7 @@ def test_padded_slots_are_never_neighbours():
 
 
 def _stats(**values):
-    from evojax_motion.evolution.step import GenerationStats
+    from evojax_motion.evolution.stats import GenerationStats
 
     base = dict.fromkeys(GenerationStats._fields, np.float32(1.5))
     base.update(values)
@@ -162,7 +163,7 @@ def test_combine_stats_weights_by_offspring_past_every_rejection():
     import jax
 
     from evojax_motion.evolution.sharding import CONDITION_AXIS, combine_stats
-    from evojax_motion.evolution.step import GenerationStats
+    from evojax_motion.evolution.stats import GenerationStats
 
     n_local = 10
     a = _stats(n_rejected_torque=np.int32(3), n_rejected_velocity=np.int32(2),
@@ -293,13 +294,14 @@ def _problem():
 
     from evojax_motion.compiler.interpolation import Boundary
     from evojax_motion.evolution.conditions import Conditions
-    from evojax_motion.evolution.step import EvolutionSettings, init_evolved_slots
+    from evojax_motion.evolution.step import init_evolved_slots
     from evojax_motion.model.dynamics import make_dynamics
     from evojax_motion.model.robot import load_robot
     from evojax_motion.motion.database import Database, make_database
     from evojax_motion.motion.objective import torque_cost
     from evojax_motion.motion.timegrid import make_time_grid
     from evojax_motion.settings.compiler import BasisSettings, OptimSettings
+    from evojax_motion.settings.evolution import EvolutionSettings
 
     assert jax.config.read("jax_enable_x64")
     f64 = np.float64

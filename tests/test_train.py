@@ -169,12 +169,11 @@ def test_check_run_dir_refusals(tmp_path):
 
 def test_compile_wait_counts_the_early_compile_still_running():
     """``compile_seconds`` of a run's summary counts the wait for the step compiled in the
-    background (`run.training.wait_for_step`): a compile that ends 0.3 s after the demonstrations
-    and
-    conditions is 0.3 s not hidden (earlier summaries read 0.0 s there)."""
+    background (`run.compilation.wait_for_step`): a compile that ends 0.3 s after the
+    demonstrations and conditions is 0.3 s not hidden (earlier summaries read 0.0 s there)."""
     import time
 
-    from evojax_motion.run.training import wait_for_step
+    from evojax_motion.run.compilation import wait_for_step
 
     class Early:
         def step(self):
@@ -221,7 +220,8 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
     from evojax_motion.motion.database import humans_only, save_database
     from evojax_motion.run import cache as compile_cache
     from evojax_motion.run.cache import signature
-    from evojax_motion.run.training import expected_inputs, initial_state
+    from evojax_motion.run.compilation import expected_inputs
+    from evojax_motion.run.training import initial_state
     from evojax_motion.run.workflow import make_robot_dynamics
     from evojax_motion.settings import config_from_dict, config_to_dict, load_config
 
@@ -260,7 +260,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
 
     # a new run compiles the setup's programs from the expected sizes, in the background:
     # they must be the very programs `initial_state` then calls (no second signature)
-    from evojax_motion.run.training import expected_sizes, setup_programs
+    from evojax_motion.run.compilation import expected_sizes, setup_programs
 
     setup = setup_programs(cfg, robot, dyn, expected_sizes(cfg, robot))
     setup.precompile()
@@ -282,9 +282,8 @@ STAGED_COST_RTOL = 1e-5
 
 @pytest.mark.parametrize("method", ["adam", "bfgs"])  # bfgs: its Gauss-Newton model in prepare
 def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch, method):
-    """`run.training.compile_generation_step` on one device: its two stages compiled side by side
-    give
-    the one-program step's generations (database and statistics, 2 generations), its cost
+    """`run.compilation.compile_generation_step` on one device: its two stages compiled side by
+    side give the one-program step's generations (database and statistics, 2 generations), its cost
     analysis is the two programs' together, and a second compile traces neither stage again
     (the traced programs are kept)."""
     import jax
@@ -293,7 +292,8 @@ def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypa
     from evojax_motion.motion.database import count_human
     from evojax_motion.motion.timegrid import make_time_grid
     from evojax_motion.run import cache as compile_cache
-    from evojax_motion.run.training import StagedStep, compile_generation_step, initial_state
+    from evojax_motion.run.compilation import StagedStep, compile_generation_step
+    from evojax_motion.run.training import initial_state
     from evojax_motion.run.workflow import make_robot_dynamics
     from evojax_motion.settings import load_config
 
@@ -465,7 +465,8 @@ from evojax_motion.cli.entry import main
 # what a run imports (the JAX backend starts in each forked run: nothing runs here)
 import jax.numpy, orbax.checkpoint, yaml  # noqa: E401
 import evojax_motion.run.checkpoint  # noqa: E401
-import evojax_motion.run.training, evojax_motion.run.workflow  # noqa: E401
+import evojax_motion.run.compilation, evojax_motion.run.training  # noqa: E401
+import evojax_motion.run.workflow  # noqa: E401
 
 for line in sys.stdin:
     index, when, count_file, log, *argv = json.loads(line)
@@ -678,10 +679,11 @@ def test_an_error_queueing_the_next_generation_comes_after_the_files_of_the_last
     """`train` queues generation g + 1 before writing generation g's files; where queueing it
     fails, generation g's metrics and checkpoint are written first, then the error is raised,
     and a resume continues from g to the uninterrupted run's results."""
+    from evojax_motion.run import compilation
     from evojax_motion.run import training as train
     from evojax_motion.settings import load_config
 
-    real = train.compile_generation_step
+    real = compilation.compile_generation_step
 
     def failing_at_3(*args):
         step = real(*args)
@@ -693,14 +695,14 @@ def test_an_error_queueing_the_next_generation_comes_after_the_files_of_the_last
 
         return call
 
-    monkeypatch.setattr(train, "compile_generation_step", failing_at_3)
+    monkeypatch.setattr(compilation, "compile_generation_step", failing_at_3)
     cfg = load_config(TINY, ["train.plots=false"])
     out = tmp_path / "run"
     with pytest.raises(RuntimeError, match="generation 3"):
         train.run_training(cfg, out, progress=False)
     assert [r["generation"] for r in _metrics(out)] == [1, 2]
     assert (out / train.CHECKPOINT_DIR / "2").is_dir()
-    monkeypatch.setattr(train, "compile_generation_step", real)
+    monkeypatch.setattr(compilation, "compile_generation_step", real)
     summary = train.run_training(cfg, out, resume=True, progress=False)
     assert summary["resumed_from"] == 2
     _assert_same_run(tiny_run[0], out)
@@ -835,8 +837,8 @@ def test_a_run_folder_of_an_older_version_resumes_with_new_keys_at_their_default
     another config."""
     import yaml
 
-    from evojax_motion.run.training import TrainSettings
     from evojax_motion.settings import config_to_dict, load_config
+    from evojax_motion.settings.run import TrainSettings
 
     default = TrainSettings().checkpoint_every
     mine = config_to_dict(load_config(TINY, [f"train.checkpoint_every={default}"]))
@@ -908,7 +910,7 @@ def test_cli_refuses_another_configs_run(tiny_run, capsys):
     ],
 )
 def test_train_settings_reject_bad_values(field, value):
-    from evojax_motion.run.training import TrainSettings
+    from evojax_motion.settings.run import TrainSettings
 
     with pytest.raises(ValueError, match=rf"^{field}: expected"):
         TrainSettings(**{field: value})

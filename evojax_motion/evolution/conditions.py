@@ -35,6 +35,7 @@ from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, compile_interpolation
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
+from evojax_motion.linalg.reductions import masked_row_mean
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.model.ik import solve_ik
 from evojax_motion.model.robot import Robot
@@ -45,7 +46,7 @@ from evojax_motion.run.cache import TracedProgram, traced_program
 from evojax_motion.settings.compiler import BasisSettings
 
 if TYPE_CHECKING:
-    from evojax_motion.evolution.step import EvolutionSettings
+    from evojax_motion.settings.evolution import EvolutionSettings
 
 INTERP_COMPONENTS = 3  # eq. 1: three principal components + a constant
 
@@ -77,12 +78,6 @@ def sampling_box(db: Database, margin: float) -> tuple[np.ndarray, np.ndarray]:
             f"(demonstration extent {np.round(pos.max(0) - pos.min(0), 3).tolist()} m)"
         )
     return lo.astype(np.float32), hi.astype(np.float32)
-
-
-def _masked_mean(x, mask):
-    """Mean of ``x (C, k, ...)`` over the k rows where ``mask (C, k)``."""
-    w = mask.astype(x.dtype).reshape(mask.shape + (1,) * (x.ndim - 2))
-    return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
 
 
 def _near_branch(q: np.ndarray, ref: np.ndarray, continuous: np.ndarray) -> np.ndarray:
@@ -156,21 +151,23 @@ def condition_programs(
     def reach(cand, nb, q):
         final = q[nb.index, -1]  # (m, k, J) the neighbours' final postures
         lower, upper = jnp.asarray(robot.lower, q.dtype), jnp.asarray(robot.upper, q.dtype)
-        return solve_ik(dyn, cand, final[:, 0], lower, upper, q_pref=_masked_mean(final, nb.mask))
+        return solve_ik(
+            dyn, cand, final[:, 0], lower, upper, q_pref=masked_row_mean(final, nb.mask)
+        )
 
     @jax.jit
     @exact_matmuls
     def finish(target, nb, qf, ik_error, q, duration):
         j = q.shape[-1]
         if settings.duration is None:
-            dur = _masked_mean(duration[nb.index], nb.mask)
+            dur = masked_row_mean(duration[nb.index], nb.mask)
         else:
             dur = jnp.full((m,), settings.duration, q.dtype)
         zeros = jnp.zeros((m, j), q.dtype)
         # The neighbours' mean start, as an offset from the nearest one's: exactly the shared
         # start where they have one (synthetic demonstrations start at the robot's rest).
         start = q[nb.index, 0]  # (m, k, J)
-        q0 = start[:, 0] + _masked_mean(start - start[:, :1], nb.mask)
+        q0 = start[:, 0] + masked_row_mean(start - start[:, :1], nb.mask)
         boundary = Boundary(q0=q0, qf=qf, qd0=zeros, qdf=zeros, duration=dur)
         ref_basis = pca_basis(q, duration, nb, INTERP_COMPONENTS)
         ref = compile_interpolation(ref_basis, boundary, grid, n_components=INTERP_COMPONENTS)

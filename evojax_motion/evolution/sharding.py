@@ -8,7 +8,7 @@ conditions are split over a 1-D device mesh (axis ``"conditions"``) and the data
 replicated: each device searches the neighbours of its own conditions in the whole database, and
 the new evolved slots are all-gathered so that every device holds the next generation's database.
 
-`make_sharded_generation_step` runs the unchanged step of ``evolution.py`` per device inside
+`make_sharded_generation_step` runs the unchanged step of `evolution.step` per device inside
 ``jax.shard_map`` (not the automatic SPMD partitioner: it replicates ``lax.top_k``, i.e. would
 all-gather the whole ``(m, N)`` distance matrix of the neighbour search). The compiled program
 holds only these collectives: all-gathers of the new evolved slots and all-reduces of scalar
@@ -19,7 +19,7 @@ Each device's local database is the whole global database (in its own order, so 
 indices and distance ties are those of one device) followed by copies of the device's incumbent
 slots with a NaN condition: the step wants its incumbents last, and the NaN keeps the copies out
 of the neighbour search. The price: the neighbour search of m/d conditions scans N + m/d entries
-instead of N (see docs/scaling.md for the hook in evolution.py that would remove it).
+instead of N (see docs/scaling.md for the hook in `evolution.step` that would remove it).
 
 Why the database stays replicated (not sharded and all-gathered for the neighbour search): every
 condition needs distances to all N entries and the trajectories of any k of them, so a sharded
@@ -48,7 +48,6 @@ any other JAX call; ``jax.devices()`` then lists all hosts' devices and the mesh
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -59,38 +58,12 @@ from jax.sharding import PartitionSpec as P
 
 from evojax_motion.compiler.optimisation import cpu_fast_path
 from evojax_motion.errors import UserError
-from evojax_motion.evolution.step import GenerationStats, generation_stages, generation_step
+from evojax_motion.evolution.stats import GenerationStats
+from evojax_motion.evolution.step import generation_stages, generation_step
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.motion.database import Database
 
 CONDITION_AXIS = "conditions"
-
-
-@dataclass(frozen=True)
-class ParallelSettings:
-    """How a generation's conditions are spread over devices (config section ``parallel``).
-
-    - ``devices``: shard the conditions over the first ``devices`` of ``jax.devices()`` (the
-      devices of all hosts after ``jax.distributed.initialize``); ``null`` = all of them. With one
-      device the plain generation step runs on it.
-
-    Padding rule (fixed): with d devices the m conditions are padded to ``d * ceil(m / d)`` with
-    copies of the last condition marked as padding (NaN target). They never change the results of
-    the real conditions and are dropped before the step returns (module docstring).
-    """
-
-    devices: int | None = None
-
-    def __post_init__(self):
-        ok = self.devices is None or (
-            isinstance(self.devices, int)
-            and not isinstance(self.devices, bool)
-            and self.devices >= 1
-        )
-        if not ok:
-            raise ValueError(
-                f"devices: expected null (all) or an integer >= 1, got {self.devices!r}"
-            )
 
 
 def resolve_devices(devices: int | Sequence | None = None) -> list:
@@ -166,11 +139,11 @@ def pad_database(db: Database, extra: int) -> Database:
 
 # How the per-device statistics combine into those of the whole condition set. Every field of
 # `GenerationStats` needs a rule: a new statistic without one fails at import, not silently.
-# Counts are the fields named ``n_*``; the offspring rejections (``n_rejected_*``) exclude each
-# other, so the accepted offspring are the rest.
+# Counts are the fields named ``n_*``, maxima those named ``*_max``; the offspring rejections
+# (``n_rejected_*``) exclude each other, so the accepted offspring are the rest.
 _SUMS = tuple(f for f in GenerationStats._fields if f.startswith("n_"))
 _REJECTIONS = tuple(f for f in _SUMS if f.startswith("n_rejected_"))
-_MAXIMA = ("bc_residual_max", "bc_velocity_residual_max")
+_MAXIMA = tuple(f for f in GenerationStats._fields if f.endswith("_max"))
 _MEAN_OVER_ACCEPTED = ("offspring_cost_mean",)
 _MEAN_OVER_VALID = ("db_cost_mean", "torque_sum_mean", "human_deviation_deg")
 _MEAN_OVER_ALL = ("converged_fraction",)
@@ -265,10 +238,9 @@ def sharded_generation_step(
     velocity_limit=None,
 ):
     """``(step, compiler_options)``: `evolution.step.make_generation_step` with the conditions
-    sharded
-    over ``devices``, and the compiler options its jit carries
-    (`compiler.optimisation.cpu_fast_path`;
-    needed again by whoever compiles the step another way, e.g. `run.cache.compile_traced`).
+    sharded over ``devices``, and the compiler options its jit carries
+    (`compiler.optimisation.cpu_fast_path`; needed again by whoever compiles the step another
+    way, e.g. `run.cache.compile_traced`).
 
     Same arguments (``torque_limit``, ``velocity_limit`` as keywords) plus ``devices``
     (`resolve_devices`: ``None`` = all, an int = the first n, or a sequence); same contract: a

@@ -4,10 +4,9 @@ Genetic operator: every condition c of the fixed set (``conditions.py``) is comp
 movement compiler via optimisation (eq. 3-5) from a basis of its neighbours (eq. 6) in the current
 database; neighbour search sees the human originals and the survivors alike. Offspring that are not
 finite, leave the joint ranges, exceed a torque or velocity limit (peak |tau| or |qd| over the T
-samples; `model.robot.Robot.torque_limit`, ``velocity_limit``) or miss the boundary conditions (eq.
-2)
-are discarded (sec. 3.1, 5). An infinite limit (a continuous joint's range, a joint without torque
-or velocity limit) is never violated.
+samples; `model.robot.Robot.torque_limit`, ``velocity_limit``) or miss the boundary conditions
+(eq. 2) are discarded (sec. 3.1, 5). An infinite limit (a continuous joint's range, a joint
+without torque or velocity limit) is never violated.
 Survivor selection (sec. 4.3): slot ``n_human + c`` keeps the cheaper of incumbent and offspring by
 the eq. 5 cost, a batched argmin; the human originals (slots ``0 .. n_human-1``) never change.
 
@@ -16,14 +15,12 @@ one jitted function ``step(db, conditions, generation) -> (db, GenerationStats)`
 generation (neighbours, PCA, optimisation, selection, metrics) is a single XLA program.
 `generation_stages` gives the same step as two programs, ``prepare`` (neighbours, PCA, the reduced
 problems, BFGS's first model) and ``finish`` (the optimiser, selection, metrics): a run compiles
-them side by side (`run.training.compile_generation_step`), which on 2 CPU cores shortens the wait
-for
-its first generation.
+them side by side (`run.compilation.compile_generation_step`), which on 2 CPU cores shortens the
+wait for its first generation.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -44,76 +41,15 @@ from evojax_motion.compiler.optimisation import (
     prepare_optimisation,
     validate_rate_limits,
 )
-from evojax_motion.errors import check_setting
+from evojax_motion.evolution.stats import GenerationStats
 from evojax_motion.linalg.precision import exact_matmuls
+from evojax_motion.linalg.reductions import masked_mean
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.database import EVOLVED, Database, count_human
 from evojax_motion.motion.objective import torque_sum, trajectory_torques
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
 from evojax_motion.settings.compiler import BasisSettings, OptimSettings
-
-
-@dataclass(frozen=True)
-class EvolutionSettings:
-    """The evolution's settings; defaults are the paper's (sec. 4.2-4.4).
-
-    - ``conditions``: size m of the fixed condition set (paper: 300).
-    - ``generations``: generations to run (paper: 10).
-    - ``region_margin`` [m]: targets are drawn uniformly from the bounding box of the
-      demonstrations' hand positions grown by this margin on every side (negative shrinks it) ...
-    - ``min_neighbours``: ... and kept only where at least this many demonstrations lie within
-      ``basis.radius`` (so each condition has a basis: where the robot will work).
-    - ``candidates_per_condition``: oversampling factor of that rejection sampling.
-    - ``ik_tolerance`` [m]: a target whose human-like IK posture misses it by more is rejected.
-    - ``duration`` [s]: duration of every condition's motion; ``null`` = its neighbours' mean.
-    - ``bc_tolerance`` [rad], ``bc_velocity_tolerance`` [rad/s]: offspring whose start/end joint
-      angles (velocities) miss the boundary conditions by more are discarded. Velocities get a
-      looser bound: the demonstrations start and end at rest, so the velocity rows of the BC
-      system are numerically degenerate (``compile_interp``) and are met only to the finite
-      difference accuracy of the time grid (a few 1e-2 rad/s at T = 32).
-    """
-
-    conditions: int = 300
-    generations: int = 10
-    region_margin: float = 0.0
-    min_neighbours: int = 5
-    candidates_per_condition: int = 8
-    ik_tolerance: float = 0.005
-    duration: float | None = None
-    bc_tolerance: float = 1e-3
-    bc_velocity_tolerance: float = 0.1
-
-    def __post_init__(self):
-        check_setting(self.conditions >= 1, "conditions", "an integer >= 1", self.conditions)
-        check_setting(self.generations >= 1, "generations", "an integer >= 1", self.generations)
-        check_setting(
-            abs(self.region_margin) < 10.0, "region_margin", "|margin| < 10 m", self.region_margin
-        )
-        check_setting(
-            self.min_neighbours >= 1, "min_neighbours", "an integer >= 1", self.min_neighbours
-        )
-        check_setting(
-            self.candidates_per_condition >= 1,
-            "candidates_per_condition",
-            "an integer >= 1",
-            self.candidates_per_condition,
-        )
-        check_setting(self.ik_tolerance > 0, "ik_tolerance", "a number > 0 [m]", self.ik_tolerance)
-        check_setting(
-            self.duration is None or self.duration > 0,
-            "duration",
-            "null or a number > 0 [s]",
-            self.duration,
-        )
-        check_setting(
-            self.bc_tolerance > 0, "bc_tolerance", "a number > 0 [rad]", self.bc_tolerance
-        )
-        check_setting(
-            self.bc_velocity_tolerance > 0,
-            "bc_velocity_tolerance",
-            "a number > 0 [rad/s]",
-            self.bc_velocity_tolerance,
-        )
+from evojax_motion.settings.evolution import EvolutionSettings
 
 
 class Selection(NamedTuple):
@@ -166,26 +102,6 @@ def write_slots(db: Database, n_human: int, sel: Selection) -> Database:
     )
 
 
-class GenerationStats(NamedTuple):
-    """Scalars of one generation (``metrics.jsonl``; see `make_generation_step`)."""
-
-    offspring_cost_mean: jnp.ndarray
-    db_cost_mean: jnp.ndarray
-    torque_sum_mean: jnp.ndarray
-    human_deviation_deg: jnp.ndarray
-    n_replaced: jnp.ndarray
-    n_rejected_nonfinite: jnp.ndarray
-    n_rejected_limits: jnp.ndarray
-    n_rejected_torque: jnp.ndarray
-    n_rejected_velocity: jnp.ndarray
-    n_rejected_bc: jnp.ndarray
-    n_valid: jnp.ndarray
-    n_short: jnp.ndarray
-    bc_residual_max: jnp.ndarray
-    bc_velocity_residual_max: jnp.ndarray
-    converged_fraction: jnp.ndarray
-
-
 def init_evolved_slots(humans: Database, conditions) -> Database:
     """Database of capacity ``n_human + m``: the human rows, then one empty slot per condition.
 
@@ -209,11 +125,6 @@ def init_evolved_slots(humans: Database, conditions) -> Database:
         valid=cat(humans.valid, False),
         generation=cat(humans.generation, 0),
     )
-
-
-def _masked_mean(x, mask):
-    n = jnp.sum(mask)
-    return jnp.where(n > 0, jnp.sum(jnp.where(mask, x, 0.0)) / jnp.maximum(n, 1), jnp.nan)
 
 
 def boundary_errors(grid: TimeGrid, q, boundary):
@@ -403,10 +314,10 @@ def generation_stages(
         tsum = jax.vmap(lambda t: torque_sum(grid, t))(tau)
         dev = rms_deviation_deg(sel.q, conditions.human_q)
         stats = GenerationStats(
-            offspring_cost_mean=_masked_mean(off.cost, accept),
-            db_cost_mean=_masked_mean(sel.cost, sel.valid),
-            torque_sum_mean=_masked_mean(tsum, sel.valid),
-            human_deviation_deg=_masked_mean(dev, sel.valid),
+            offspring_cost_mean=masked_mean(off.cost, accept),
+            db_cost_mean=masked_mean(sel.cost, sel.valid),
+            torque_sum_mean=masked_mean(tsum, sel.valid),
+            human_deviation_deg=masked_mean(dev, sel.valid),
             n_replaced=jnp.sum(sel.replaced).astype(jnp.int32),
             n_rejected_nonfinite=jnp.sum(~finite).astype(jnp.int32),
             n_rejected_limits=jnp.sum(finite & ~in_range).astype(jnp.int32),

@@ -3,7 +3,8 @@
 The optimiser works on batches of small vectors ``(B, n)`` and matrices ``(B, n, n)``: a
 reduction or GEMM of its own there is a GPU kernel launch (and on the CPU a loop) per use, which
 costs far more than the arithmetic. These forms keep the work elementwise where they can
-(`row_reduce`) or share one reduction among several sums (`sum_together`).
+(`row_reduce`) or share one reduction among several sums (`sum_together`). Also the masked
+means of the evolution and the online generation (`masked_mean`, `masked_row_mean`).
 """
 
 from __future__ import annotations
@@ -62,3 +63,17 @@ def sum_together(terms: Sequence[jnp.ndarray], axis: int = 0) -> tuple[jnp.ndarr
         tuple(terms), zeros, lambda xs, ys: tuple(x + y for x, y in zip(xs, ys, strict=True)),
         (axis,),
     )  # fmt: skip
+
+
+def masked_mean(x: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+    """Mean of the entries of ``x`` where ``mask`` (same shape): a scalar, NaN where ``mask``
+    holds none. Entries outside ``mask`` are never read (a rejected offspring's ``inf`` cost)."""
+    n = jnp.sum(mask)
+    return jnp.where(n > 0, jnp.sum(jnp.where(mask, x, 0.0)) / jnp.maximum(n, 1), jnp.nan)
+
+
+def masked_row_mean(x: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+    """Mean of ``x (C, k, ...)`` over the k rows where ``mask (C, k)``: ``(C, ...)`` (e.g. over
+    each condition's neighbours); 0 for a finite ``x`` where ``mask`` holds none."""
+    w = mask.astype(x.dtype).reshape(mask.shape + (1,) * (x.ndim - 2))
+    return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)

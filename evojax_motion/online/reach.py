@@ -21,6 +21,7 @@ import numpy as np
 from evojax_motion.compiler.basis import select_neighbours
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
+from evojax_motion.linalg.reductions import masked_row_mean
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.model.ik import solve_ik
 from evojax_motion.model.robot import Robot
@@ -49,12 +50,6 @@ class Reach(NamedTuple):
     natural_duration: jnp.ndarray
     n_inside: jnp.ndarray
     reachable: jnp.ndarray
-
-
-def _masked_mean(x, mask):
-    """Mean of ``x (C, k, ...)`` over the rows where ``mask (C, k)``."""
-    w = mask.astype(x.dtype).reshape(mask.shape + (1,) * (x.ndim - 2))
-    return jnp.sum(w * x, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
 
 
 def reach_query(
@@ -97,7 +92,7 @@ def reach_query(
         final[:, 0],
         lower,
         upper,
-        q_pref=_masked_mean(final, nb.mask),
+        q_pref=masked_row_mean(final, nb.mask),
         iters=settings.ik_iters,
         tol=settings.reach_tolerance,
     )
@@ -106,7 +101,7 @@ def reach_query(
     kth = region.distance[:, settings.min_neighbours - 1] / basis_settings.w_pos
     depth = jnp.where(jnp.isfinite(kth), basis_settings.radius - kth, -jnp.inf)
     gap = jnp.maximum(-depth, 0.0)
-    dur = _masked_mean(jnp.asarray(db.duration, q_db.dtype)[nb.index], nb.mask)
+    dur = masked_row_mean(jnp.asarray(db.duration, q_db.dtype)[nb.index], nb.mask)
     reach = Reach(
         depth=depth,
         region_gap=gap,

@@ -42,13 +42,13 @@ option.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from evojax_motion.console import log
 from evojax_motion.errors import UserError
 from evojax_motion.report.condition import (
     catch_animation,
@@ -85,10 +85,6 @@ class Report:
     @property
     def complete(self) -> bool:
         return not self.problems and not self.skipped
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 class _Batch(NamedTuple):
@@ -151,7 +147,7 @@ def make_report(
             raise UserError(
                 f"--joint: expected one of {list(ctx.robot.joint_names)}, got {joint!r}"
             )
-    say = (lambda msg: None) if quiet else _log
+    say = (lambda msg: None) if quiet else log
     for msg in rep.problems.values():
         say(f"warning: {msg}")
     if renderer != "stick":

@@ -2,7 +2,8 @@
 
 ``run_training(cfg, out_dir)`` builds the human database (synthetic demonstrations or
 ``demos_file``), draws the fixed condition set, and runs ``evolution.generations`` generations of
-the jitted `evolution.step.make_generation_step`. The run folder holds:
+the jitted `evolution.step.make_generation_step`, compiled while generation 0 is made
+(`run.compilation`). The run folder holds:
 
 | path | content |
 |---|---|
@@ -29,26 +30,21 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from evojax_motion.console import log
 from evojax_motion.errors import UserError
+from evojax_motion.evolution.stats import GenerationStats
+from evojax_motion.run import compilation
 
 if TYPE_CHECKING:
-    from evojax_motion.motion.objective import CostProgram
     from evojax_motion.settings import Config
 
 CONDITIONS_STREAM = 1  # fold_in index of the condition set's key (seed -> streams)
-# Nice value added to the thread that precompiles the setup's programs (`EarlyCompile`): the
-# step's compile is a new run's critical path, the setup's programs are needed only after the
-# demonstrations. 2 CPU cores, paper config, cold, 3 alternating rounds: 31.4 / 30.4 / 30.4 s to
-# the first generation against 31.5 / 32.4 / 33.1 s (CHANGELOG.md).
-PRECOMPILE_NICE = 10
 CONFIG_FILE, ROBOT_FILE, METRICS_FILE = "config.yaml", "robot.xml", "metrics.jsonl"
 CHECKPOINT_DIR, PLOT_DIR, SUMMARY_FILE = "checkpoints", "plots", "summary.json"
 DB_INITIAL, DB_GEN1, DB_FINAL = "db_initial.npz", "db_gen1.npz", "db_final.npz"
@@ -57,55 +53,8 @@ METRIC_FIELDS = (
     "seconds",  # wall time from the previous generation's result (or the loop's start) to this
     # one's: the generation's execution, overlapped with writing the previous one's files
     "finished_at",  # Unix time [s] at its end (time to first generation, gaps on resume)
-    # then `evolution.step.GenerationStats`' fields, in order (not imported here: no JAX at import)
-    "offspring_cost_mean",
-    "db_cost_mean",
-    "torque_sum_mean",
-    "human_deviation_deg",
-    "n_replaced",
-    "n_rejected_nonfinite",
-    "n_rejected_limits",
-    "n_rejected_torque",
-    "n_rejected_velocity",
-    "n_rejected_bc",
-    "n_valid",
-    "n_short",
-    "bc_residual_max",
-    "bc_velocity_residual_max",
-    "converged_fraction",
+    *GenerationStats._fields,  # `evolution.stats.GenerationStats`, in order
 )
-
-
-@dataclass(frozen=True)
-class TrainSettings:
-    """Run bookkeeping.
-
-    - ``max_to_keep``: checkpoints kept (>= 2, so a damaged latest one has a predecessor).
-    - ``checkpoint_every``: a checkpoint after every this many generations and after the last
-      (>= 1); a resumed run restarts from the newest one and computes the generations after it
-      again (to the same results). With a checkpoint after every generation, a generation's
-      files took 44 ms on 2 CPU cores and 145 ms on one H100 machine, more than a paper-scale
-      generation on a GPU (~8 ms): there a run checkpointing every generation made 6.6
-      generations/s, every 10th 84 (`benchmarks/train_loop.py`).
-    - ``plot_condition``: index of the condition drawn in ``plots/joint_angles.png`` (Fig. 8);
-      ``null``: the one whose cost fell most from generation 1 to the last.
-    - ``plots``: write the figures.
-    """
-
-    max_to_keep: int = 3
-    checkpoint_every: int = 10
-    plot_condition: int | None = None
-    plots: bool = True
-
-    def __post_init__(self):
-        if not (isinstance(self.max_to_keep, int) and self.max_to_keep >= 2):
-            raise ValueError(f"max_to_keep: expected an integer >= 2, got {self.max_to_keep!r}")
-        n = self.checkpoint_every
-        if not (isinstance(n, int) and not isinstance(n, bool) and n >= 1):
-            raise ValueError(f"checkpoint_every: expected an integer >= 1, got {n!r}")
-        c = self.plot_condition
-        if c is not None and not (isinstance(c, int) and c >= 0):
-            raise ValueError(f"plot_condition: expected null or an integer >= 0, got {c!r}")
 
 
 # ----------------------------------------------------------------------------- run folder checks
@@ -122,37 +71,6 @@ def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
         elif va != vb:
             out.append(f"{dotted} ({va!r} there, {vb!r} here)")
     return out
-
-
-def check_settings(cfg: Config) -> None:
-    """Checks across config sections that need no data, before anything is computed or written.
-
-    Raises ``UserError`` naming the field: ``train.plot_condition`` beyond the conditions,
-    ``parallel.devices`` beyond the devices JAX sees, ``compiler.n_components`` not below the
-    samples T of synthetic demonstrations (a ``demos_file``'s T is checked once it is read).
-    """
-    from evojax_motion.evolution.sharding import resolve_devices
-
-    evo, tr = cfg.evolution, cfg.train
-    if tr.plot_condition is not None and tr.plot_condition >= evo.conditions:
-        raise UserError(
-            f"train.plot_condition: expected < evolution.conditions ({evo.conditions}), "
-            f"got {tr.plot_condition}"
-        )
-    resolve_devices(cfg.parallel.devices)
-    if cfg.demos_file is None:
-        check_samples(cfg, cfg.demos.samples)
-
-
-def check_samples(cfg: Config, samples: int) -> None:
-    """The basis of eq. 3 needs fewer components than time samples (K + 1 <= T)."""
-    k = cfg.compiler.n_components
-    if k >= samples:
-        where = cfg.demos_file if cfg.demos_file is not None else "demos.samples"
-        raise UserError(
-            f"compiler.n_components: expected < the {samples} time samples of the "
-            f"demonstrations ({where}), got {k}"
-        )
 
 
 def _temporaries(out: Path) -> list[Path]:
@@ -259,7 +177,7 @@ def _from_state_tree(tree: dict):
 def human_only_baseline(costs, conditions) -> dict:
     """Eq. 5 cost and Fig. 5 torque sum of the human-only interpolations, averaged over the
     conditions: what the demonstrations alone give before any evolution (``conditions.human_q``).
-    ``costs``: `CostProgram`.
+    ``costs``: `motion.objective.CostProgram`.
     """
     cost, tsum = costs(conditions.human_q, conditions.boundary.duration)
     return {
@@ -274,55 +192,21 @@ def _numpy_db(db):
     return Database(*(np.asarray(a) for a in db))
 
 
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
 # ---------------------------------------------------------------------------------- the run
 
 
-class SetupPrograms(NamedTuple):
-    """`initial_state`'s programs for demonstrations of known ``sizes`` (`setup_programs`)."""
-
-    sizes: tuple[int, int, int]  # (demonstrations, samples, joints)
-    grid: Any  # timegrid.TimeGrid of the samples
-    costs: CostProgram
-    conditions: Any  # conditions.ConditionPrograms
-
-    def precompile(self) -> None:
-        """Compile them for ``sizes``, before the demonstrations exist."""
-        n, t, j = self.sizes
-        self.costs.precompile(t, j)
-        self.conditions.precompile(n, t, j)
-
-
-def setup_programs(cfg: Config, robot, dyn, sizes: tuple[int, ...]) -> SetupPrograms:
-    """The time grid, `CostProgram` and condition draw (`evolution.conditions.condition_programs`)
-    of a
-    run of ``cfg`` with ``sizes = (demonstrations, samples, joints)``."""
-    from evojax_motion.evolution.conditions import condition_programs
-    from evojax_motion.motion.objective import CostProgram
-    from evojax_motion.motion.timegrid import make_time_grid
-    from evojax_motion.run.workflow import cache_parts
-
-    n, t, j = (int(x) for x in sizes)
-    parts = cache_parts(cfg, robot)
-    grid = make_time_grid(t)
-    costs = CostProgram(dyn, grid, max(n, cfg.evolution.conditions), parts)
-    draw = condition_programs(dyn, robot, cfg.evolution, cfg.basis, grid, parts)
-    return SetupPrograms((n, t, j), grid, costs, draw)
-
-
-def initial_state(cfg: Config, robot, dyn, setup: SetupPrograms | None = None, on_traced=None):
+def initial_state(
+    cfg: Config, robot, dyn, setup: compilation.SetupPrograms | None = None, on_traced=None
+):
     """Generation 0 of ``cfg``: ``(db, conditions, meta, baseline, timings)``.
 
     The human database (``demos_file`` or synthetic demonstrations), each primitive's eq. 5 cost
     with this run's dynamics, the condition set drawn with the key ``fold_in(key(seed), 1)``, the
     database of capacity ``n_human + m`` with empty evolved slots, and `human_only_baseline`.
-    ``setup``: `setup_programs` made (and perhaps being compiled) beforehand, used where its
-    sizes are the demonstrations'. ``on_traced()``: called once, when the synthesis of the
-    demonstrations is traced, else once they are read and checked (`run.workflow.demonstrations`,
-    `check_samples`).
+    ``setup``: `run.compilation.setup_programs` made (and perhaps being compiled) beforehand,
+    used where its sizes are the demonstrations'. ``on_traced()``: called once, when the
+    synthesis of the demonstrations is traced, else once they are read and checked
+    (`run.workflow.demonstrations`, `run.workflow.check_samples`).
     Writes nothing.
     """
     import jax
@@ -330,7 +214,7 @@ def initial_state(cfg: Config, robot, dyn, setup: SetupPrograms | None = None, o
     from evojax_motion.evolution.conditions import make_conditions
     from evojax_motion.evolution.step import init_evolved_slots, with_search_candidates
     from evojax_motion.motion.database import Database, nonfinite_rows
-    from evojax_motion.run.workflow import cache_parts, demonstrations
+    from evojax_motion.run.workflow import cache_parts, check_samples, demonstrations
 
     t0 = time.perf_counter()
     # First: a key is a few tiny XLA programs, compiled in no time before other compiles start
@@ -348,13 +232,13 @@ def initial_state(cfg: Config, robot, dyn, setup: SetupPrograms | None = None, o
     check_samples(cfg, humans.q.shape[1])
     traced()
     if setup is None or humans.q.shape != setup.sizes:
-        setup = setup_programs(cfg, robot, dyn, humans.q.shape)
+        setup = compilation.setup_programs(cfg, robot, dyn, humans.q.shape)
     grid, costs = setup.grid, setup.costs
     humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
     bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
     for i in bad:
         msg = f"demonstration {i}: NaN/inf in its trajectory, condition or cost; not used"
-        _log(f"warning: {msg}")
+        log(f"warning: {msg}")
     if bad.size == humans.valid.size:
         raise UserError("demonstrations: expected at least one finite demonstration, got none")
     humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
@@ -385,11 +269,11 @@ def _restore(out: Path, manager, cfg: Config, robot):
     check_database_matches_robot(meta, robot, str(out / DB_INITIAL))
     restored, problems = ck.restore_latest(manager, checkpoint_template(cfg, db_init))
     for p in problems:
-        _log(f"warning: {p}")
+        log(f"warning: {p}")
     if restored is None:
-        _log("warning: no usable checkpoint; starting the run again from generation 0")
+        log("warning: no usable checkpoint; starting the run again from generation 0")
     else:
-        _log(f"resuming after generation {restored.step} (checkpoint {restored.step})")
+        log(f"resuming after generation {restored.step} (checkpoint {restored.step})")
     for step in manager.all_steps():
         if restored is None or step > restored.step:
             manager.delete(step)
@@ -439,7 +323,12 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     import jax
 
     from evojax_motion.run.cache import signature
-    from evojax_motion.run.workflow import check_run_memory, make_robot_dynamics, synthesises
+    from evojax_motion.run.workflow import (
+        check_run_memory,
+        check_settings,
+        make_robot_dynamics,
+        synthesises,
+    )
     from evojax_motion.settings import config_to_dict, config_to_yaml
 
     t_start = time.perf_counter()
@@ -451,8 +340,8 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
     # A new run compiles its step and setup programs in background threads: from now on, or,
     # where the demonstrations are synthesised, once their synthesis is traced. (Nothing for a
-    # demonstrations file that `initial_state` will refuse: `expected_sizes`.)
-    early = None if resuming else EarlyCompile(cfg, robot, dyn)
+    # demonstrations file that `initial_state` will refuse: `run.compilation.expected_sizes`.)
+    early = None if resuming else compilation.EarlyCompile(cfg, robot, dyn)
     if early is not None and not synthesises(cfg, robot):
         early.start()
     try:
@@ -478,12 +367,12 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             setup, cue = (None, None) if early is None else (early.setup, early.start)
             db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, setup, cue)
             start, metrics = 0, []
-            _log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
+            log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
     except BaseException:
         if early is not None:
             early.wait()  # its thread ends before the error reaches the user
         raise
-    early_step, waited = wait_for_step(early)
+    early_step, waited = compilation.wait_for_step(early)
 
     out.mkdir(parents=True, exist_ok=True)
     for leftover in _temporaries(out):  # of a run killed in the middle of a write
@@ -502,7 +391,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         if early_step is not None and early_step[0] == signature((db, conditions)):
             compiled = early_step[1]
         else:
-            compiled = compile_generation_step(cfg, robot, dyn, db, conditions)
+            compiled = compilation.compile_generation_step(cfg, robot, dyn, db, conditions)
     # What the demonstrations and conditions did not hide: the wait for the early compile, or
     # the compile here where there was none (or its program does not fit).
     timings["compile_seconds"] = waited + time.perf_counter() - t0
@@ -510,8 +399,8 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     bar = tqdm(
         total=evo.generations, initial=start, disable=not progress, desc="evolution", unit="gen"
     )
-    resident = stays_on_device(cfg)
-    db_in, conditions_in = generation_inputs(cfg, db, conditions)
+    resident = compilation.stays_on_device(cfg)
+    db_in, conditions_in = compilation.generation_inputs(cfg, db, conditions)
 
     def launch(g: int, db_in) -> tuple:
         """``(pending, error)``: generation ``g`` queued on the device (``(db, stats)``, not
@@ -576,189 +465,6 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     ck.atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, allow_nan=False) + "\n")
     print_summary(summary)
     return summary
-
-
-def wait_for_step(early: EarlyCompile | None) -> tuple:
-    """``(early.step(), seconds waited for it)``; ``(None, 0.0)`` without ``early``. Its compile
-    may still be running when the demonstrations and conditions are done: that wait is compile
-    time the setup did not hide (``compile_seconds`` of the summary)."""
-    if early is None:
-        return None, 0.0
-    t0 = time.perf_counter()
-    step = early.step()
-    return step, time.perf_counter() - t0
-
-
-def stays_on_device(cfg: Config) -> bool:
-    """Whether the generations' inputs stay on the device between generations: the database the
-    step returned, and the conditions put there once. True where the step runs on one device
-    (with numpy inputs every call copied them from the host and changed their layout there:
-    ~2 ms a generation at 1,000 conditions on an H100, CHANGELOG.md); a sharded step
-    takes its inputs from the host as before."""
-    from evojax_motion.evolution.sharding import resolve_devices
-
-    return len(resolve_devices(cfg.parallel.devices)) == 1
-
-
-def generation_inputs(cfg: Config, db, conditions):
-    """``(db, conditions)`` as the generation step takes them from the first generation on: put
-    on the device once where they stay there (`stays_on_device`), else as given."""
-    import jax
-
-    return jax.device_put((db, conditions)) if stays_on_device(cfg) else (db, conditions)
-
-
-class StagedStep:
-    """``step(db, conditions, generation) -> (db, GenerationStats)``: the generation step as its
-    two compiled stages (`evolution.step.generation_stages`), ``finish`` on ``prepare``'s result.
-    ``cost_analysis()`` is the two programs' together, as of one compiled step; each program's
-    own (``as_text()``, a trace's kernels) is that of ``prepare`` or ``finish``."""
-
-    def __init__(self, prepare, finish):
-        self.prepare, self.finish = prepare, finish
-
-    def __call__(self, db, conditions, generation):
-        return self.finish(db, conditions, generation, self.prepare(db, conditions))
-
-    def cost_analysis(self) -> dict:
-        """The two programs' XLA cost analyses, summed key by key."""
-        total: dict = {}
-        for stage in (self.prepare, self.finish):
-            cost = stage.cost_analysis()
-            for k, v in (cost[0] if isinstance(cost, list) else cost or {}).items():
-                total[k] = total.get(k, 0.0) + v
-        return total
-
-
-def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
-    """The run's generation step, compiled for ``db`` and ``conditions``:
-    ``step(db, conditions, generation) -> (db, GenerationStats)``.
-
-    Conditions sharded over ``cfg.parallel.devices`` (all by default). On one device, a
-    `StagedStep`: its two stages compiled side by side (``prepare`` in a `Background` thread
-    while ``finish`` is traced and compiled here), each through `run.cache.compile_traced`,
-    so that with JAX's compilation cache on a later process skips tracing them too. Traced and
-    compiled: 10.3-10.6 against 13.3-13.6 s as one program at paper scale on 2 CPU cores, 27-29
-    against 40-45 s at 1,000 conditions on an H200 (CHANGELOG.md).
-    """
-    from evojax_motion.evolution.sharding import one_device_stages, sharded_generation_step
-    from evojax_motion.motion.database import count_human
-    from evojax_motion.motion.timegrid import make_time_grid
-    from evojax_motion.run.cache import Background, compile_traced, lower_traced
-    from evojax_motion.run.workflow import cache_parts
-
-    n_human = count_human(db)
-    grid = make_time_grid(db.q.shape[1])
-    fixed = (dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, cfg.evolution)
-    limits = {"torque_limit": robot.torque_limit, "velocity_limit": robot.velocity_limit}
-    generation = np.asarray(1, np.int32)  # the generation index is traced
-    if not stays_on_device(cfg):  # sharded over several devices
-        step_fn, _ = sharded_generation_step(*fixed, devices=cfg.parallel.devices, **limits)
-        return step_fn.lower(db, conditions, generation).compile()
-    prepare, finish, options = one_device_stages(*fixed, devices=cfg.parallel.devices, **limits)
-    parts = {"n_human": n_human, **cache_parts(cfg, robot)}
-    lowered = lower_traced(prepare, (db, conditions), {"program": "prepare", **parts}, options)
-    first = Background(lowered.compile)
-    try:
-        args = (db, conditions, generation, lowered.out_info)
-        second = compile_traced(finish, args, {"program": "finish", **parts}, options)
-    finally:
-        first.wait()  # never leave a compile running behind an error
-    return StagedStep(first.result(), second)
-
-
-def expected_sizes(cfg: Config, robot) -> tuple[int, int, int] | None:
-    """``(demonstrations, samples, joints)`` that `initial_state` will meet, known before the
-    demonstrations are made: ``demos.count`` and ``demos.samples``, or the valid human rows of
-    ``demos_file``; None when `initial_state` will refuse the file (it then says why:
-    `run.workflow.read_demonstrations_file`, `check_samples`). A demonstration dropped as
-    non-finite makes the real count smaller: compare before use."""
-    from evojax_motion.run.workflow import read_demonstrations_file
-
-    if cfg.demos_file is None:
-        n, t = cfg.demos.count, cfg.demos.samples
-    else:
-        try:
-            file_db, _ = read_demonstrations_file(cfg, robot)
-            check_samples(cfg, file_db.q.shape[1])
-        except UserError:
-            return None
-        n, t = file_db.q.shape[0], file_db.q.shape[1]
-    return n, t, len(robot.joint_names)
-
-
-def expected_inputs(cfg: Config, robot, sizes: tuple[int, int, int] | None = None):
-    """``(db, conditions)`` of zeros shaped and typed as `initial_state` will return them
-    (``sizes``: `expected_sizes`, found here by default; None where those are unknown)."""
-    from evojax_motion.evolution.conditions import conditions_from_tree, conditions_template
-    from evojax_motion.evolution.step import with_search_candidates
-    from evojax_motion.motion.database import make_database
-
-    sizes = expected_sizes(cfg, robot) if sizes is None else sizes
-    if sizes is None:
-        return None
-    n, t, j = sizes
-    m = cfg.evolution.conditions
-    humans = make_database(np.zeros((n, t, j)), np.ones(n), np.zeros((n, 3)), capacity=n + m)
-    conditions = conditions_from_tree(conditions_template(m, t, j))
-    return humans, with_search_candidates(humans, conditions, cfg.basis, placeholder=True)
-
-
-class EarlyCompile:
-    """What a new run will compile, compiled in background threads from the sizes known before
-    the demonstrations exist (`expected_sizes`): the generation step for `expected_inputs`
-    (one device, some generations) and `setup_programs`. `start` launches them; `train` calls
-    it at once, or, where the demonstrations are synthesised (`run.workflow.synthesises`), when
-    their synthesis is traced (so that the step's long trace does not hold the GIL back from
-    it). On two cores the compiles overlap each other and the synthesis. Nothing is compiled
-    for a demonstrations file that the run will refuse (no sizes): a refused run would wait
-    for its compiles before saying what was wrong."""
-
-    def __init__(self, cfg: Config, robot, dyn):
-        from evojax_motion.evolution.sharding import resolve_devices
-
-        self._args = (cfg, robot, dyn)
-        sizes = expected_sizes(cfg, robot)
-        self.setup = None if sizes is None else setup_programs(cfg, robot, dyn, sizes)
-        one_device = len(resolve_devices(cfg.parallel.devices)) == 1
-        step = sizes is not None and cfg.evolution.generations > 0 and one_device
-        self._expected = expected_inputs(cfg, robot, sizes) if step else None
-        self._threads: list = []
-
-    def start(self) -> None:
-        """Launch the compiles (once; nothing where the sizes are unknown)."""
-        from evojax_motion.run.cache import Background, signature
-
-        if self._threads:
-            return
-        if self._expected is not None:
-            expected = self._expected
-
-            def compile_step():
-                try:
-                    return signature(expected), compile_generation_step(*self._args, *expected)
-                except Exception:  # compiled again in the foreground, which reports it
-                    return None
-
-            self._threads.append(Background(compile_step))
-        if self.setup is not None:
-            setup = self.setup
-
-            def precompile():
-                with contextlib.suppress(Exception):  # ditto
-                    setup.precompile()
-
-            self._threads.append(Background(precompile, nice=PRECOMPILE_NICE))
-
-    def step(self):
-        """``(avals, compiled)`` of the step, or None (not compiled here, or it failed)."""
-        self.start()
-        return self._threads[0].result() if self._expected is not None else None
-
-    def wait(self) -> None:
-        """Until every compile has ended (before an error may end the process)."""
-        for thread in self._threads:
-            thread.wait()
 
 
 def meta_of(out: Path):

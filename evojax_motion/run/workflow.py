@@ -1,4 +1,5 @@
-"""Glue from a validated ``Config`` to the pipeline's objects (robot, dynamics, demonstrations).
+"""Glue from a validated ``Config`` to the pipeline's objects (robot, dynamics, demonstrations),
+and the checks across its sections that a run makes before any work (`check_settings`).
 
 The CLI and the training run both start here, so one config always yields the same robot and the
 same demonstration database.
@@ -44,6 +45,37 @@ def check_database_matches_robot(meta: DatabaseMeta, robot: Robot, where: str) -
         raise UserError(
             f"{where}: database joints {list(meta.joint_names)} do not match robot "
             f"{robot.name!r} joints {list(robot.joint_names)}"
+        )
+
+
+def check_settings(cfg: Config) -> None:
+    """Checks across config sections that need no data, before anything is computed or written.
+
+    Raises ``UserError`` naming the field: ``train.plot_condition`` beyond the conditions,
+    ``parallel.devices`` beyond the devices JAX sees, ``compiler.n_components`` not below the
+    samples T of synthetic demonstrations (a ``demos_file``'s T is checked once it is read).
+    """
+    from evojax_motion.evolution.sharding import resolve_devices
+
+    evo, tr = cfg.evolution, cfg.train
+    if tr.plot_condition is not None and tr.plot_condition >= evo.conditions:
+        raise UserError(
+            f"train.plot_condition: expected < evolution.conditions ({evo.conditions}), "
+            f"got {tr.plot_condition}"
+        )
+    resolve_devices(cfg.parallel.devices)
+    if cfg.demos_file is None:
+        check_samples(cfg, cfg.demos.samples)
+
+
+def check_samples(cfg: Config, samples: int) -> None:
+    """The basis of eq. 3 needs fewer components than time samples (K + 1 <= T)."""
+    k = cfg.compiler.n_components
+    if k >= samples:
+        where = cfg.demos_file if cfg.demos_file is not None else "demos.samples"
+        raise UserError(
+            f"compiler.n_components: expected < the {samples} time samples of the "
+            f"demonstrations ({where}), got {k}"
         )
 
 

@@ -30,12 +30,11 @@ from typing import Any, get_type_hints
 import yaml
 
 from evojax_motion.errors import UserError, read_user_file
-from evojax_motion.evolution.sharding import ParallelSettings
-from evojax_motion.evolution.step import EvolutionSettings
-from evojax_motion.run.training import TrainSettings
 from evojax_motion.settings.compiler import BasisSettings, OptimSettings
 from evojax_motion.settings.demonstrations import DemoSettings
+from evojax_motion.settings.evolution import EvolutionSettings, ParallelSettings
 from evojax_motion.settings.online import MAX_DURATION
+from evojax_motion.settings.run import TrainSettings
 
 DYNAMICS_BACKENDS = ("rnea", "mjx")
 # Every integer of a config is a size, an index or a seed that ends up in an int32 (array shapes,
