@@ -1,6 +1,6 @@
 """The optimiser's batched Cholesky solve as XLA compiles it against a hand-written Pallas kernel.
 
-`compile_optim._cholesky_solve` (the quasi-Newton step of every optimiser pass; ``n`` = 14 on
+`linalg.cholesky.cholesky_solve` (the quasi-Newton step of every optimiser pass; ``n`` = 14 on
 the paper configuration) is unrolled into elementwise operations that XLA splits into ~9 kernels
 per call; at 1,000 problems on a GPU their time is their dependency chains, not their work
 (`benchmarks/linearity.py`). `pallas_cholesky_solve` is the same algorithm as one Pallas (Triton)
@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from dynamics_throughput import machine_info  # noqa: E402
 from result_files import machine_line, write_result  # noqa: E402
 
-from evojax_motion.compiler.optimisation import _cholesky_solve  # noqa: E402
+from evojax_motion.linalg.cholesky import cholesky_solve as _cholesky_solve  # noqa: E402
 
 BLOCKS = ((32, 1), (64, 2), (128, 4))  # problems per program, warps per program
 
@@ -76,7 +76,7 @@ def _kernel(n: int, block: int):
 
 
 def pallas_cholesky_solve(a, b, block: int = 128, warps: int = 4):
-    """``(a^-1 b, ok)`` like `compile_optim._cholesky_solve` for ``a (B, n, n)``, ``b (B, n)``: one
+    """``(a^-1 b, ok)`` like `linalg.cholesky.cholesky_solve` for ``a (B, n, n)``, ``b (B, n)``: one
     Pallas kernel, ``block`` problems per program (a power of two), problems along the lanes
     (the inputs are transposed to ``(n * n, B)`` for it). On CPU, Pallas' interpreter."""
     from jax.experimental import pallas as pl

@@ -41,17 +41,14 @@ from generations_per_sec import build  # noqa: E402
 
 from evojax_motion.compiler.basis import pca_basis, select_neighbours, small_eigh  # noqa: E402
 from evojax_motion.compiler.interpolation import solve_boundary  # noqa: E402
-from evojax_motion.compiler.optimisation import (  # noqa: E402
-    _trust_region_step,
-    compile_optimisation,
-    cpu_fast_path,
-)
+from evojax_motion.compiler.optimisation import compile_optimisation, cpu_fast_path  # noqa: E402
 from evojax_motion.compiler.problems import reduced_problems  # noqa: E402
 from evojax_motion.compiler.search_objective import make_objective, make_search_value  # noqa: E402
 from evojax_motion.evolution.step import make_generation_step  # noqa: E402
 from evojax_motion.motion.database import count_human  # noqa: E402
 from evojax_motion.motion.timegrid import make_time_grid  # noqa: E402
 from evojax_motion.settings import load_config  # noqa: E402
+from evojax_motion.solvers.steps import trust_region_step  # noqa: E402
 
 
 def timed(fn, *args, repeats: int) -> dict:
@@ -124,7 +121,7 @@ def main(argv=None) -> None:
         run("small_eigh", small_eigh, sym)
         g0 = jnp.ones((args.conditions, j * f))
         radius = jnp.full((args.conditions,), 0.3)
-        run("tr_step", _trust_region_step, sym, g0, radius)
+        run("tr_step", trust_region_step, sym, g0, radius)
     out = run("optimise", lambda ba, bc: compile_optimisation(
         ba, bc, fast_dyn, grid, robot.lower, robot.upper, st),
         basis, bd, options=options)  # fmt: skip

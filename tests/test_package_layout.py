@@ -15,8 +15,15 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def _with_parents(name: str, modules: set[str]) -> set[str]:
+    """``name`` and the packages above it that import runs first (``a.b.c``: ``a.b``, ``a``)."""
+    parts = name.split(".")
+    return {".".join(parts[:i]) for i in range(1, len(parts) + 1)} & modules
+
+
 def _top_level_imports(path: Path, modules: set[str]) -> set[str]:
-    """The package's modules that ``path`` imports at module level (not inside a function)."""
+    """The package's modules that ``path`` imports at module level (not inside a function),
+    with the packages above them (their ``__init__`` runs first)."""
     found = set()
     for node in ast.parse(path.read_text()).body:
         if isinstance(node, ast.If | ast.Try):  # e.g. TYPE_CHECKING blocks are not executed
@@ -27,13 +34,18 @@ def _top_level_imports(path: Path, modules: set[str]) -> set[str]:
                 found.add(sub if sub in modules else node.module)
         elif isinstance(node, ast.Import):
             found.update(a.name for a in node.names)
-    return {m for m in found if m in modules}
+    return {p for m in found if m in modules for p in _with_parents(m, modules)}
 
 
 def import_graph() -> dict[str, set[str]]:
     files = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
     modules = set(files)
-    return {name: _top_level_imports(path, modules) - {name} for name, path in files.items()}
+    # A package's own __init__ is not an import of its modules (it runs before them, and a
+    # module importing its package's __init__ back is only a cycle if the __init__ imports it).
+    return {
+        name: _top_level_imports(path, modules) - _with_parents(name, modules)
+        for name, path in files.items()
+    }
 
 
 def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -68,3 +80,13 @@ def test_package_has_no_import_cycle():
     graph = import_graph()
     assert "evojax_motion.settings" in graph and "evojax_motion.compiler.optimisation" in graph
     assert find_cycle(graph) is None, " -> ".join(find_cycle(graph) or [])
+
+
+def test_settings_import_nothing_of_the_pipeline():
+    """Every stage reads its settings from ``settings``; so ``settings`` depends on no stage:
+    its modules import only ``errors`` and each other."""
+    graph = import_graph()
+    for name, imports in graph.items():
+        if name.startswith("evojax_motion.settings"):
+            others = {m for m in imports if not m.startswith("evojax_motion.settings")}
+            assert others <= {"evojax_motion", "evojax_motion.errors"}, (name, others)
