@@ -9,7 +9,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.cholesky_kernels import pallas_cholesky_solve, spd_systems
-from evojax_motion.compiler.optimisation import _cholesky_solve
+from evojax_motion.linalg.cholesky import cholesky_solve
 
 SOLVE_RTOL = 1e-4  # float32 solves of condition ~1e3 systems, relative to the largest entry
 
@@ -18,7 +18,7 @@ def test_pallas_kernel_matches_float64_and_the_optimisers_solve():
     a, b = spd_systems(37, 6)  # 37: a partial last block of 32
     a[5] = -a[5]  # not positive definite: flagged, like the optimiser's solve flags it
     x, ok = pallas_cholesky_solve(jnp.asarray(a), jnp.asarray(b), block=32, warps=1)
-    x_ref, ok_ref = _cholesky_solve(jnp.asarray(a), jnp.asarray(b))
+    x_ref, ok_ref = cholesky_solve(jnp.asarray(a), jnp.asarray(b))
     np.testing.assert_array_equal(np.asarray(ok), np.arange(37) != 5)
     np.testing.assert_array_equal(np.asarray(ok), np.asarray(ok_ref))
     good = np.arange(37) != 5

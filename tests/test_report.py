@@ -30,6 +30,7 @@ from evojax_motion.report.figures import FIGURES, tradeoff_figure
 from evojax_motion.report.html import HTML_FILE
 from evojax_motion.report.sticks import render_sticks
 from evojax_motion.settings import config_to_yaml, load_config
+from evojax_motion.settings.online import BALL_RADIUS
 
 T, N_HUMAN, M = 24, 40, 6
 TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
@@ -433,7 +434,7 @@ def test_catch_animation_keeps_the_ball_in_view(reach):
 
     def inside(cam):
         u, v, depth, focal = kin.project(balls, cam, fovy, width, height)
-        r = focal * kin.BALL_RADIUS / depth  # the ball's radius [px]
+        r = focal * BALL_RADIUS / depth  # the ball's radius [px]
         return (depth > 0) & (u - r >= 0) & (u + r <= width) & (v - r >= 0) & (v + r <= height)
 
     assert inside(catch_camera(robot, q, balls)).all()
