@@ -1,8 +1,9 @@
 """Run configuration: frozen dataclasses loaded from YAML and validated at load time.
 
-Each pipeline stage owns its settings dataclass (``DemoSettings`` in ``demos``, ``BasisSettings`` in
-``basis``, ``OptimSettings`` in ``compile_optim``, ``EvolutionSettings`` in ``evolution``,
-``TrainSettings`` in ``train``); ``Config`` assembles them. A section's ``__post_init__`` raises
+Each section's settings dataclass lives beside this module, one file per stage
+(``settings.demonstrations.DemoSettings``, ``settings.compiler.BasisSettings`` and
+``OptimSettings``, ``settings.evolution.EvolutionSettings`` and ``ParallelSettings``,
+``settings.run.TrainSettings``); ``Config`` assembles them. A section's ``__post_init__`` raises
 ``ValueError("<field>: expected ...")``; the loader turns every problem into a ``UserError`` that
 names the file and the dotted key (``configs/x.yaml: evolution.generations: expected ...``), or the
 ``--set`` argument that set it (``--set demos.count=abc: demos.count: expected ...``).
