@@ -277,7 +277,7 @@ def sharded_generation_step(
 
         def local(full, slots, cond, generation):
             copies = slots._replace(condition=jnp.full_like(slots.condition, jnp.nan))
-            view = Database(*(jnp.concatenate([a, b]) for a, b in zip(full, copies)))
+            view = Database(*(jnp.concatenate([a, b]) for a, b in zip(full, copies)))  # type: ignore[arg-type]
             new, stats = inner(view, cond, generation)
             return Database(*(a[n_full:] for a in new)), combine_stats(stats, n_local)
 

@@ -399,7 +399,7 @@ def _vector_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
         s = hinge * jnp.sin(angle) + slide * angle
         cc = hinge * (1.0 - jnp.cos(angle))
         local = c0 + s[:, None, None] * c1 + cc[:, None, None] * c2  # (J, 3, 4)
-        frames = []
+        frames: list[jnp.ndarray] = []
         for j in range(n):
             p = parents[j]
             frames.append(local[j] if p < 0 else _compose(frames[p], local[j]))
@@ -469,9 +469,11 @@ def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
     def frames_of(q):
         """q: (J,) -> per segment (R: 3x3, o: 3) world frame, as nested tuples of scalars."""
         q = [q[k] for k in range(n)]
-        frames = []
+        frames: list[tuple[Any, Any]] = []
         for s in range(n):
             angle = _s_sub(q[int(tree.order[s])], float(tree.qpos0[s]))
+            sin: Any
+            omc: Any
             if tree.hinge[s]:
                 sin, omc = jnp.sin(angle), 1.0 - jnp.cos(angle)
             else:
@@ -494,7 +496,10 @@ def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
     def rigid(q, qd, qdd):
         frames = frames_of(q)
         qd, qdd = list(qd), list(qdd)
-        motion, vel, acc, wrench = [], [], [], []
+        motion: list[Any] = []
+        vel: list[Any] = []
+        acc: list[Any] = []
+        wrench: list[Any] = []
         for s in range(n):
             rot, org = frames[s]
             k = int(tree.order[s])

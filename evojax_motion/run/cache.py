@@ -200,6 +200,7 @@ class TracedProgram:
             mine = future is None
             if mine:
                 future = self._compiled[sig] = concurrent.futures.Future()
+        assert future is not None  # taken from or put into the table under the lock
         if not mine:
             try:
                 return future.result()

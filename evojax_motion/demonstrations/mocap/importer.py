@@ -494,7 +494,8 @@ def _solve(params, robot, dyn, kp, settings, prepared, lower, upper, rest):
             }
             lim = rt.at_limit(q, lower, upper)
             r.limit_frames = int(lim.any(axis=1).sum())
-            r.limit_joints = [j for j, hit in zip(robot.joint_names, lim.any(axis=0)) if hit]
+            hits = np.asarray(lim.any(axis=0), bool)  # (J,)
+            r.limit_joints = [j for j, hit in zip(robot.joint_names, hits, strict=True) if hit]
             if r.rms_error_m > params.max_rms:
                 f, k = np.unravel_index(int(np.argmax(matched)), matched.shape)
                 frame = p.first_frame + on + int(f)
