@@ -187,13 +187,6 @@ def test_count_over_limits_of_human_rows(mahru):
     assert f"{low.any} of {N_HUMAN}" in over_limits_line(low)
 
 
-def test_metric_fields_are_the_generation_stats():
-    from evojax_motion.evolution.stats import GenerationStats
-    from evojax_motion.run.training import METRIC_FIELDS
-
-    assert METRIC_FIELDS[3:] == GenerationStats._fields
-
-
 @pytest.mark.slow
 def test_tiny_run_keeps_evolved_rows_within_every_limit(tmp_path):
     """configs/tiny.yaml trained: every valid evolved row of db_final is inside the joint ranges,

@@ -372,10 +372,8 @@ def make_optimisation_compiler(
     """
     settings = OptimSettings() if settings is None else settings
     lower, upper = checked_limits(lower, upper)
-    if velocity_limit is not None:
-        velocity_limit = validate_rate_limits(velocity_limit, lower.shape[0], "velocity limits")
-    if torque_limit is not None:
-        torque_limit = validate_rate_limits(torque_limit, lower.shape[0], "torque limits")
+    velocity_limit = validate_rate_limits(velocity_limit, lower.shape[0], "velocity limits")
+    torque_limit = validate_rate_limits(torque_limit, lower.shape[0], "torque limits")
     dyn, options = cpu_fast_path(dyn, settings) if fast_path else (dyn, None)
 
     def compile_batch(basis: Basis, boundary: Boundary) -> Optimised:

@@ -111,12 +111,11 @@ def make_objective(dyn: Dynamics, lo, hi, weight, vmax=None, taumax=None):
         tau = jax.vmap(dyn.inverse)(q, qd, qdd)
         w = problem.node_w.astype(tau.dtype)
         cost = 0.5 * problem.duration * jnp.sum(w * jnp.sum(tau**2, -1))
-        q_nodes, qd_nodes = (jnp.stack(x, axis=-1) if lists else x for x in (q, qd))
-        penalty = limit_penalty(w, q_nodes, problem.duration, lo, hi, weight)
-        if vmax is not None:
-            penalty += limit_penalty(w, qd_nodes, problem.duration, -vmax, vmax, weight)
+        bounds = [(q, lo, hi)] if vmax is None else [(q, lo, hi), (qd, -vmax, vmax)]
+        bounded = [(jnp.stack(x, axis=-1) if lists else x, a, b) for x, a, b in bounds]
         if taumax is not None:
-            penalty += limit_penalty(w, tau, problem.duration, -taumax, taumax, weight)
+            bounded.append((tau, -taumax, taumax))
+        penalty = sum(limit_penalty(w, x, problem.duration, a, b, weight) for x, a, b in bounded)
         return cost + penalty, cost
 
     return objective
