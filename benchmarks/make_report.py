@@ -25,7 +25,7 @@ MAX_LINES = 320  # the page stays a summary of the current figures
 BY_SOURCE_ROWS = 3  # functions listed per trace
 NOT_RECORDED = "not recorded"
 # What a file does not record about itself but a reader needs (shown under its table). Every
-# key must name a file in results/ (tests/test_make_report.py).
+# key must name a file in results/ (tests/benchmark_scripts/test_make_report.py).
 NOTES = {
     "sharded_generations_h200x2.json": "run when the shipped config's method was `newton` (add "
     "`--set compiler.method=newton` to repeat it)",

@@ -57,7 +57,7 @@ SUBSTITUTED: dict[str, tuple[str, str]] = {
     IMPORT: (
         f"{IMPORT} --samples 32",
         "T = 32 samples instead of 100, so that the training on it compiles quickly (the "
-        "shapes of tests/test_import.py's training)",
+        "shapes of tests/demonstrations/test_import.py's training)",
     ),
     TRAIN_REACH: (
         f"{TRAIN_REACH} --set evolution.conditions=8 --set evolution.generations=1 "
@@ -71,8 +71,8 @@ NOT_RUN: dict[str, str] = {
     "make test": "the whole test suite with lint, this test included",
     ".venv/bin/evojax-motion train configs/catch_ball.yaml --out runs/paper": (
         "the paper's scale (300 conditions, T = 100; minutes on 2 CPU cores); the same "
-        "command runs on configs/tiny.yaml for `make demo`, and tests/test_config.py loads "
-        "configs/catch_ball.yaml"
+        "command runs on configs/tiny.yaml for `make demo`, and tests/settings/test_config.py "
+        "loads configs/catch_ball.yaml"
     ),
     "evojax-motion report RUN_DIR [--out DIR] [--condition C] [--joint NAME]": (
         "a usage synopsis (placeholders); README's `evojax-motion report runs/demo` runs it"

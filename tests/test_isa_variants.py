@@ -52,7 +52,7 @@ def marked_modules() -> list[str]:
     """The test modules with a test marked ``isa_sensitive`` (relative to the repository)."""
     return sorted(
         str(p.relative_to(REPO))
-        for p in (REPO / "tests").glob("test_*.py")
+        for p in (REPO / "tests").rglob("test_*.py")
         if p.name != Path(__file__).name and f"pytest.mark.{MARKER}" in p.read_text()
     )
 

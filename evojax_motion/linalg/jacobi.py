@@ -34,7 +34,7 @@ JACOBI_SWEEPS = 6
 # trajectories up to 8.4e-3 rad off the float64 ones, 5 as close as LAPACK (1.5e-4 rad): the BC
 # rows in q-orthonormal coordinates are graded over four orders (the slope rows near `BC_LEAK`),
 # and after 4 sweeps their left singular vectors were orthonormal only to 2.1e-6
-# (`tests/test_basis.py`, ``PAPER_BC_ROWS``).
+# (`tests/compiler/test_basis.py`, ``PAPER_BC_ROWS``).
 JACOBI_SVD_SWEEPS_SMALL = 5
 
 

@@ -13,7 +13,8 @@ One motion per file, sampled on the primitive's time grid, in three formats:
 - ``json``: ``{"joint_names": [...], "t": [...], "q": [[...]], ..., "meta": {...}}``.
 
 The torques are ``Dynamics.inverse(q, qd, qdd)`` of the written rows (MuJoCo's ``mj_inverse``
-``qfrc_inverse`` for the controlled joints; ``tests/test_export.py`` recomputes them from the file).
+``qfrc_inverse`` for the controlled joints; ``tests/run/test_export.py`` recomputes them from the
+file).
 A trajectory with a NaN or inf is refused (`UserError`) and nothing is written: a file on disk is
 always a usable motion. Writes are atomic (temporary file, then rename).
 """

@@ -24,7 +24,7 @@ TOL_FK = 1e-5  # [m] float32 FK vs C MuJoCo
 TOL_IK = 1e-3  # [m] reachable key points, after the warm-up and 4 LM iterations per frame
 TOL_LIMIT = 1e-6  # [rad]
 B, F = 2, 64  # IK test shapes (one compilation per robot)
-ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"  # published arms, unedited
+ROBOTS = Path(__file__).resolve().parents[3] / "shared" / "robots"  # published arms, unedited
 GEN3 = ROBOTS / "kinova_gen3" / "gen3.xml"
 XARM7 = ROBOTS / "ufactory_xarm7" / "xarm7_nohand.xml"
 

@@ -49,7 +49,7 @@ from evojax_motion.solvers.quasi_newton import bfgs_update
 from evojax_motion.solvers.steps import subspace_step
 
 # benchmarks/ is not a package of the project; its SLSQP reference is shared with the benchmark.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from benchmarks.slsqp_reference import (
     SLSQP_MAXITER,
     ReferenceSolver,

@@ -19,7 +19,7 @@ from evojax_motion.errors import UserError
 from evojax_motion.run import lock as run_lock
 from evojax_motion.run.lock import LOCK_FILE, hold_run_folder
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.skipif(run_lock.fcntl is None, reason="no fcntl: runs are not locked")
 
 

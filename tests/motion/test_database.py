@@ -71,7 +71,7 @@ def test_load_rejects_nan_and_shape_mismatch(tmp_path):
         load_database(tmp_path / "joints.npz")
 
 
-CONTINUOUS_ARM = Path(__file__).parent / "assets" / "continuous_arm.xml"
+CONTINUOUS_ARM = Path(__file__).parents[1] / "assets" / "continuous_arm.xml"
 TOL_TURN = 1e-5  # [rad] float32 rounding of a whole turn added and taken away again
 
 

@@ -211,7 +211,7 @@ def test_continuous_joints_have_no_limits_in_ik():
     """Continuous joints (limits -inf/+inf) pass through the clamping and clipping untouched:
     targets of postures past a half turn are reached from starts 0.2 rad away, with finite
     iterates, limited joints inside their limits and continuous ones not wrapped."""
-    robot = load_robot(Path(__file__).resolve().parent / "assets" / "continuous_arm.xml")
+    robot = load_robot(Path(__file__).resolve().parents[1] / "assets" / "continuous_arm.xml")
     assert robot.continuous.any() and np.isinf(robot.lower[robot.continuous]).all()
     dyn = make_dynamics(robot, backend="rnea")
     fk = jax.jit(jax.vmap(lambda q: dyn.site_pose(q)[0]))

@@ -7,7 +7,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from benchmarks.cholesky_kernels import pallas_cholesky_solve, spd_systems
 from evojax_motion.linalg.cholesky import cholesky_solve
 

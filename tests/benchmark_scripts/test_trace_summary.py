@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 # benchmarks/ is not a package of the project; the summary is what trace_generation.py reports.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from benchmarks.trace_summary import (
     NO_SOURCE,
     NOT_IN_HLO,

@@ -41,8 +41,8 @@ TOL_COST_REL = 1e-4  # stored cost vs objective.torque_cost recomputed
 HUMAN_DURATION_S = (0.4, 1.0)  # human reaching durations
 DURATION_NOISE_SIGMAS = 3.0  # Fitts' law noise is clipped at 3 standard deviations
 ARM6_REGION = CatchRegion("upper_link", (0.35, 0.6), (-30.0, 30.0), (-20.0, 20.0))
-TREE_ARM = Path(__file__).parent / "assets" / "tree_arm.xml"
-CONTINUOUS_ARM = Path(__file__).parent / "assets" / "continuous_arm.xml"
+TREE_ARM = Path(__file__).parents[1] / "assets" / "tree_arm.xml"
+CONTINUOUS_ARM = Path(__file__).parents[1] / "assets" / "continuous_arm.xml"
 TOL_REACH_REL = 0.03  # derived reach (4096 postures) vs a 20 000-posture reference, relative
 # A Franka-like arm (link offsets and joint ranges of the Franka Emika Panda, invented inertias)
 # without a keyframe: the rest posture is qpos0 with joints 4 and 6 on their limits, moved off
@@ -364,7 +364,7 @@ def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsy
     from evojax_motion.run import workflow
     from evojax_motion.settings import load_config
 
-    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
+    cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml")
     robot, dyn = workflow.make_robot_dynamics(cfg)
     parts = workflow.cache_parts(cfg, robot)
     kept = compile_cache.result_path({"result": "demonstrations", "parts": parts})

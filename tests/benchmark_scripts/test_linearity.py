@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from benchmarks.linearity import analyse, batch_chunks, fit_latency, latency_bound
 
 FIT_RTOL = 1e-9  # an exact model, least squares in float64

@@ -28,7 +28,7 @@ from evojax_motion.demonstrations.mocap.markers import MarkerData, TrialError
 from evojax_motion.demonstrations.mocap.vicon_csv import read_vicon_csv
 from evojax_motion.errors import UserError
 
-SAMPLE = Path(__file__).resolve().parents[1] / "evojax_motion" / "data" / "ue_adl_sample"
+SAMPLE = Path(__file__).resolve().parents[2] / "evojax_motion" / "data" / "ue_adl_sample"
 TRIAL = SAMPLE / "ADL004" / "ADL004FR1.csv"
 STATIC = SAMPLE / "ADL004" / "ADL004_static.csv"
 TOL_POS = 1e-9  # [m] float64 parsing / exact kinematics

@@ -37,8 +37,8 @@ from evojax_motion.errors import UserError
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.database import load_database
 
-SAMPLE = Path(__file__).resolve().parents[1] / "evojax_motion" / "data" / "ue_adl_sample"
-SHARED = Path(__file__).resolve().parents[2] / "shared"  # beside the repository, if there
+SAMPLE = Path(__file__).resolve().parents[2] / "evojax_motion" / "data" / "ue_adl_sample"
+SHARED = Path(__file__).resolve().parents[3] / "shared"  # beside the repository, if there
 GEN3 = SHARED / "robots" / "kinova_gen3" / "gen3.xml"
 UE_ADL = SHARED / "data" / "ue_adl"
 TOL_RMS_SAMPLE = 0.02  # [m] key-point RMS after scaling, mahru_arm, every real trial
@@ -604,7 +604,7 @@ def test_angles_csv_continuous_joints_land_on_the_rest_branch(tmp_path):
     np.testing.assert_allclose(res.db.q[0, 0], rest, atol=0.02)
 
 
-REACH_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "reach_real.yaml"
+REACH_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "reach_real.yaml"
 
 
 def test_reach_real_config_names_the_imported_database():

@@ -37,8 +37,8 @@ from evojax_motion.report.render import scene_model
 from evojax_motion.run.workflow import make_robot
 from evojax_motion.settings import config_from_dict
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "robots"
-ASSETS = Path(__file__).resolve().parent / "assets"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "robots"
+ASSETS = Path(__file__).resolve().parents[1] / "assets"
 # MjSpec.to_xml writes numbers with 6 significant digits: an expanded model (includes, meshes)
 # differs from its file by that rounding, a verbatim one not at all.
 TOL_ROUNDED_REL = 1e-5  # masses, inertias, keyframe values of an expanded model, relative

@@ -31,7 +31,7 @@ FD_STEP = 1e-6
 N_STATES = 1000
 QD_SCALE, QDD_SCALE = 2.0, 10.0  # random velocities [rad/s], accelerations [rad/s^2]
 
-ASSETS = Path(__file__).resolve().parent / "assets"
+ASSETS = Path(__file__).resolve().parents[1] / "assets"
 # Not the model's joint order, and r_wrist is left out (held at its qpos0 = ref = 0.2).
 TREE_JOINTS = ("l_elbow", "yaw", "lift", "l_sh1", "l_sh2", "r_slide", "r_sh", "r_elbow")
 ROBOTS = {
@@ -41,7 +41,7 @@ ROBOTS = {
 }
 # Published arms as users bring them (../shared/robots, skipped where absent) and a small model
 # with continuous joints: the default RNEA form in float32 and float64 only (compile time).
-SHARED_ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
+SHARED_ROBOTS = Path(__file__).resolve().parents[3] / "shared" / "robots"
 MORE_ROBOTS = {
     "continuous_arm": ASSETS / "continuous_arm.xml",  # continuous hinges, armature, damping
     "kinova_gen3": SHARED_ROBOTS / "kinova_gen3" / "gen3.xml",  # 4 continuous joints, meshes

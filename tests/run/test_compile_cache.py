@@ -17,7 +17,7 @@ import pytest
 
 from evojax_motion.run import cache as compile_cache
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 class Pair(NamedTuple):

@@ -3,7 +3,7 @@ system, a full disk, a denied permission or a file where a folder should be is o
 ``error: PATH: REASON`` on stderr, exit status 2, no traceback, nothing written (cli.main,
 atomic.py). Refusals are injected (monkeypatched ``os`` calls for paths in one folder; as root,
 ``chmod`` refuses nothing); a file in the way is real. A run stopped by a full disk resumes:
-tests/test_train.py."""
+tests/run/test_train.py."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import pytest
 from evojax_motion.cli.entry import main, os_error_line
 from evojax_motion.run import atomic
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TINY = REPO / "configs" / "tiny.yaml"
 TRIAL = REPO / "evojax_motion" / "data" / "ue_adl_sample" / "ADL004" / "ADL004FR1.csv"
 PROC_FD = Path("/proc/self/fd")

@@ -13,8 +13,8 @@ from evojax_motion.compiler.optimisation import LIMIT_TOL, checked_limits
 from evojax_motion.errors import UserError
 from evojax_motion.motion.database import make_database
 
-ASSETS = Path(__file__).resolve().parent / "assets"
-REPO = Path(__file__).resolve().parents[1]
+ASSETS = Path(__file__).resolve().parents[1] / "assets"
+REPO = Path(__file__).resolve().parents[2]
 
 N_HUMAN, T_SAMPLES, M_COND = 40, 24, 5
 REL_TOL = 1e-4  # float32 torques / velocities recomputed here against those of the step

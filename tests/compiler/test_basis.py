@@ -198,7 +198,8 @@ def test_orientation_term():
 def test_small_decompositions_follow_the_backend_switch(jacobi, monkeypatch):
     """`small_svd`, `small_eigh` and `small_right_svd` take this module's `jacobi_backend` at
     trace time (the switch the compilers' accelerator-path tests patch): each gives exactly what
-    its `linalg.jacobi` kernel gives with that choice (the kernels: `tests/test_linalg.py`)."""
+    its `linalg.jacobi` kernel gives with that choice (the kernels:
+    `tests/linalg/test_linalg.py`)."""
     monkeypatch.setattr(basis_module, "jacobi_backend", lambda: jacobi)
     rng = np.random.default_rng(8)
     a = jnp.asarray(rng.standard_normal((6, 5)), jnp.float32)

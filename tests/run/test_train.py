@@ -24,7 +24,7 @@ from evojax_motion.errors import UserError
 from evojax_motion.run import checkpoint as ck
 from evojax_motion.run.training import check_run_dir
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TINY = REPO / "configs" / "tiny.yaml"
 
 # ------------------------------------------------------------------------------- checkpoints

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 # benchmarks/ is not a package of the project; make_report renders BENCHMARKS.md.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from benchmarks import make_report
 
 DATE = "2000-01-02T03:04:05+00:00"  # any ISO time: the report shows its day

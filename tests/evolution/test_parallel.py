@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 N_DEVICES = 4  # forced CPU devices of the subprocess
 N_HUMAN, T_SAMPLES, M_COND = 30, 16, 5  # m = 5 on 4 devices: 3 padded, one device all padding
 TOL_Q_F64 = 1e-9  # [rad] sharded vs one-device survivors, float64

@@ -20,8 +20,8 @@ from evojax_motion.demonstrations.workspace import derive_defaults
 from evojax_motion.model.robot import load_robot
 from evojax_motion.motion.database import human_mask, load_database
 
-ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
-TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
+ROBOTS = Path(__file__).resolve().parents[3] / "shared" / "robots"
+TINY = Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml"
 CONDITIONS, GENERATIONS = 40, 3
 MIN_VALID_FRACTION = 0.9  # of the conditions, with a motion in every generation
 LIMIT_TOL = 1e-5  # [rad] float32 rounding at a limit

@@ -33,7 +33,7 @@ from evojax_motion.settings import config_to_yaml, load_config
 from evojax_motion.settings.online import BALL_RADIUS
 
 T, N_HUMAN, M = 24, 40, 6
-TINY = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
+TINY = Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml"
 PIXEL_STD_MIN = 8.0  # a blank or single-colour image has std ~0; our figures are > 20
 SILHOUETTE_IOU_MIN = (
     0.8  # stick figure vs MuJoCo, same frame: measured 0.90; a 40 deg wrong azimuth 0.45
