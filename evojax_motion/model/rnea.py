@@ -50,9 +50,18 @@ import numpy as np
 from jax import lax
 
 from evojax_motion.errors import UserError
+from evojax_motion.model.rnea_scalar import scalar_functions
+from evojax_motion.model.rnea_tree import (
+    HINGE,
+    SLIDE,
+    Site,
+    Tree,
+    disabled,
+    quat_mat,
+    reduce_tree,
+    transform,
+)
 
-_HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
-_SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
 FORMS = ("vector", "scalar")
 # jit compiler options under which the scalar form is the fast one on CPU: XLA's CPU fusion
 # emitters off (`default_form`), per compiled program rather than process-wide through XLA_FLAGS.
@@ -67,170 +76,6 @@ class BackendFunctions(NamedTuple):
     site_pose: Callable  # q (J,) -> (pos (3,), rot (3, 3))
     body_positions: Callable  # q (J,) -> (nbody, 3), world body origins (xpos)
     torques: Callable | None = None  # sequences of J scalars -> tuple of J torques (scalar form)
-
-
-# -- compile time (numpy, float64) ------------------------------------------------------------
-
-
-def _quat_mat(quat: np.ndarray) -> np.ndarray:
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, np.asarray(quat, np.float64))
-    return mat.reshape(3, 3)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _transform(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """4x4 homogeneous transform."""
-    t = np.eye(4)
-    t[:3, :3], t[:3, 3] = rot, pos
-    return t
-
-
-def _generators(kind: int, axis: np.ndarray, anchor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(G1, G2), 4x4: the joint's local transform is I + s G1 + c G2 (see module docstring)."""
-    g1, g2 = np.zeros((4, 4)), np.zeros((4, 4))
-    if kind == _HINGE:  # rotate about `axis` through `anchor`: x -> anchor + R (x - anchor)
-        k = _skew(axis)
-        g1[:3, :3], g1[:3, 3] = k, -k @ anchor
-        g2[:3, :3], g2[:3, 3] = k @ k, -k @ k @ anchor
-    else:
-        g1[:3, 3] = axis
-    return g1, g2
-
-
-def _disabled(m: mujoco.MjModel, flag: str, older_name: str | None = None) -> bool:
-    """Whether <flag> `flag` is disabled (MuJoCo < 3.3 had one "passive" flag for both)."""
-    bit = getattr(mujoco.mjtDisableBit, flag, None)
-    if bit is None and older_name is not None:
-        bit = getattr(mujoco.mjtDisableBit, older_name)
-    return bool(int(m.opt.disableflags) & int(bit))  # type: ignore[arg-type]
-
-
-def _model_name(m: mujoco.MjModel) -> str:
-    return m.names.split(b"\x00", 1)[0].decode()
-
-
-def _check_supported(m: mujoco.MjModel, moving: np.ndarray) -> None:
-    """Refuse model features whose forces `mj_inverse` would add but this RNEA does not."""
-    where = f"model '{_model_name(m)}'"
-    for b in map(int, np.nonzero(moving)[0]):
-        for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
-            if m.jnt_type[j] not in (_HINGE, _SLIDE):
-                name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
-                raise UserError(
-                    f"{where}: joint '{name}': expected hinge or slide joints below the "
-                    "controlled joints (ball and free joints are not supported by 'rnea')"
-                )
-    if np.any(m.body_gravcomp[moving] != 0):
-        raise UserError(f"{where}: body gravcomp: expected 0 (not supported by 'rnea')")
-    if m.opt.density != 0 or m.opt.viscosity != 0:
-        raise UserError(f"{where}: option density/viscosity: expected 0 (no fluid forces)")
-    if m.ntendon and (np.any(m.tendon_stiffness != 0) or np.any(m.tendon_damping != 0)):
-        raise UserError(f"{where}: tendon stiffness/damping: expected 0 (not supported by 'rnea')")
-
-
-class _Tree(NamedTuple):
-    """The model reduced to J segments, in topological order (parents first); float64."""
-
-    order: np.ndarray  # (J,) robot joint index of each segment
-    c0: np.ndarray  # (J, 3, 4) M_j = C0 + s C1 + c C2: segment j in its parent's frame
-    c1: np.ndarray  # (J, 3, 4)
-    c2: np.ndarray  # (J, 3, 4)
-    parent: np.ndarray  # (J,) parent segment, -1 for a root (its C's are in the world frame)
-    hinge: np.ndarray  # (J,) 1.0 hinge, 0.0 slide
-    qpos0: np.ndarray  # (J,) joint angle/displacement = q - qpos0
-    axis: np.ndarray  # (J, 3) joint axis in its segment frame (invariant under the joint)
-    anchor: np.ndarray  # (J, 3) joint anchor in its segment frame (invariant for a hinge)
-    ancestors: np.ndarray  # (J, J) A[j, i] = 1 if i == j or i is an ancestor of j
-    mass: np.ndarray  # (J,) segment mass
-    com: np.ndarray  # (J, 3) segment centre of mass, segment frame
-    inertia: np.ndarray  # (J, 3, 3) segment inertia about its centre of mass, segment frame
-    body_segment: np.ndarray  # (nbody,) segment a body is attached to, -1 if it never moves
-    body_offset: np.ndarray  # (nbody, 4, 4) body frame in its segment frame (or world frame)
-
-
-def _reduce_tree(m: mujoco.MjModel, joint_ids: list[int]) -> _Tree:
-    ctrl = {j: k for k, j in enumerate(joint_ids)}
-    # Bodies are stored parent-before-child, so one forward sweep sets `moving`.
-    moving = np.zeros(m.nbody, bool)
-    for b in range(1, m.nbody):
-        adr, num = m.body_jntadr[b], m.body_jntnum[b]
-        moving[b] = moving[m.body_parentid[b]] or any(j in ctrl for j in range(adr, adr + num))
-    _check_supported(m, moving)
-
-    d0 = mujoco.MjData(m)  # world poses of the never-moving bodies, at qpos0
-    d0.qpos[:] = m.qpos0
-    mujoco.mj_kinematics(m, d0)
-
-    # Walk the tree: `rel` = current frame in the frame of segment `seg` (world if seg == -1).
-    seg_of_joint, parent, offset = [], [], []
-    body_segment = np.full(m.nbody, -1)
-    body_offset = np.zeros((m.nbody, 4, 4))
-    for b in range(m.nbody):
-        body_offset[b] = _transform(d0.xmat[b].reshape(3, 3), d0.xpos[b])
-    for b in map(int, np.nonzero(moving)[0]):
-        p = m.body_parentid[b]
-        seg, rel = int(body_segment[p]), body_offset[p]
-        rel = rel @ _transform(_quat_mat(m.body_quat[b]), m.body_pos[b])
-        for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
-            if j not in ctrl:
-                continue  # held at qpos0: identity transform, at rest
-            seg_of_joint.append(j)
-            parent.append(seg)
-            offset.append(rel)
-            seg, rel = len(seg_of_joint) - 1, np.eye(4)
-        body_segment[b], body_offset[b] = seg, rel
-
-    n = len(seg_of_joint)
-    order = np.asarray([ctrl[j] for j in seg_of_joint])
-    c0, c1, c2 = np.zeros((n, 3, 4)), np.zeros((n, 3, 4)), np.zeros((n, 3, 4))
-    axis, anchor = np.zeros((n, 3)), np.zeros((n, 3))
-    for s, j in enumerate(seg_of_joint):
-        axis[s] = m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j])
-        anchor[s] = m.jnt_pos[j]
-        g1, g2 = _generators(int(m.jnt_type[j]), axis[s], anchor[s])
-        c0[s], c1[s], c2[s] = offset[s][:3], (offset[s] @ g1)[:3], (offset[s] @ g2)[:3]
-    ancestors = np.zeros((n, n))
-    for s in range(n):
-        i = s
-        while i >= 0:
-            ancestors[s, i] = 1.0
-            i = parent[i]
-
-    # Merge the bodies of each segment: mass, centre of mass, inertia about it (parallel axis).
-    mass, com, inertia = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 3, 3))
-    for b in map(int, np.nonzero(moving)[0]):
-        s, rel = int(body_segment[b]), body_offset[b]
-        mass[s] += m.body_mass[b]
-        com[s] += m.body_mass[b] * (rel[:3, :3] @ m.body_ipos[b] + rel[:3, 3])
-    com /= np.maximum(mass, 1e-300)[:, None]
-    for b in map(int, np.nonzero(moving)[0]):
-        s, rel = int(body_segment[b]), body_offset[b]
-        rot = rel[:3, :3] @ _quat_mat(m.body_iquat[b])
-        d = rel[:3, :3] @ m.body_ipos[b] + rel[:3, 3] - com[s]
-        inertia[s] += rot @ np.diag(m.body_inertia[b]) @ rot.T
-        inertia[s] += m.body_mass[b] * (d @ d * np.eye(3) - np.outer(d, d))
-
-    return _Tree(
-        order=order,
-        c0=c0,
-        c1=c1,
-        c2=c2,
-        parent=np.asarray(parent, int),
-        hinge=np.asarray([float(m.jnt_type[j] == _HINGE) for j in seg_of_joint]),
-        qpos0=np.asarray([m.qpos0[m.jnt_qposadr[j]] for j in seg_of_joint]),
-        axis=axis,
-        anchor=anchor,
-        ancestors=ancestors,
-        mass=mass,
-        com=com,
-        inertia=inertia,
-        body_segment=body_segment,
-        body_offset=body_offset,
-    )
 
 
 # -- run time (JAX) ---------------------------------------------------------------------------
@@ -306,26 +151,26 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> 
     m = robot.mj_model
     joint_ids = [int(j) for j in np.asarray(robot.joint_ids)]
     for j in joint_ids:
-        if m.jnt_type[j] not in (_HINGE, _SLIDE):
+        if m.jnt_type[j] not in (HINGE, SLIDE):
             name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
             raise UserError(f"joints: '{name}': expected a hinge or slide joint")
-    tree = _reduce_tree(m, joint_ids)
-    gravity = np.zeros(3) if _disabled(m, "mjDSBL_GRAVITY") else m.opt.gravity.copy()
+    tree = reduce_tree(m, joint_ids)
+    gravity = np.zeros(3) if disabled(m, "mjDSBL_GRAVITY") else m.opt.gravity.copy()
     site_id = int(robot.site_id)
     site_body = int(m.site_bodyid[site_id])
-    site = _Site(
+    site = Site(
         segment=int(tree.body_segment[site_body]),  # -1: the site never moves
         offset=tree.body_offset[site_body]
-        @ _transform(_quat_mat(m.site_quat[site_id]), m.site_pos[site_id]),
+        @ transform(quat_mat(m.site_quat[site_id]), m.site_pos[site_id]),
     )
-    build = _vector_functions if form == "vector" else _scalar_functions
+    build = _vector_functions if form == "vector" else scalar_functions
     rigid, site_pose, body_positions = build(tree, gravity, site, np.dtype(dtype))
 
     # Joint-space terms of qfrc_inverse: armature (in M) and minus the passive forces.
     dof_adr, qpos_adr = m.jnt_dofadr[joint_ids], m.jnt_qposadr[joint_ids]
     armature = m.dof_armature[dof_adr]
-    damping = m.dof_damping[dof_adr] * (not _disabled(m, "mjDSBL_DAMPER", "mjDSBL_PASSIVE"))
-    stiffness = m.jnt_stiffness[joint_ids] * (not _disabled(m, "mjDSBL_SPRING", "mjDSBL_PASSIVE"))
+    damping = m.dof_damping[dof_adr] * (not disabled(m, "mjDSBL_DAMPER", "mjDSBL_PASSIVE"))
+    stiffness = m.jnt_stiffness[joint_ids] * (not disabled(m, "mjDSBL_SPRING", "mjDSBL_PASSIVE"))
     passive = bool(np.any(armature) or np.any(damping) or np.any(stiffness))
     armature, damping, stiffness, qpos_spring = (
         np.asarray(x, dtype) for x in (armature, damping, stiffness, m.qpos_spring[qpos_adr])
@@ -363,12 +208,7 @@ def make_rnea(robot: Any, dtype: Any = jnp.float32, form: str | None = None) -> 
     )
 
 
-class _Site(NamedTuple):
-    segment: int  # segment the site is attached to, -1 if it never moves
-    offset: np.ndarray  # (4, 4) site frame in the segment frame (world frame if segment == -1)
-
-
-def _vector_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.dtype):
+def _vector_functions(tree: Tree, gravity: np.ndarray, site: Site, dtype: np.dtype):
     """The "vector" form: (rigid-body inverse, site_pose, body_positions)."""
     n = len(tree.order)
 
@@ -449,215 +289,3 @@ def _vector_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.d
         return jnp.asarray(fixed_xpos).at[moving].set(_mv(w[:, :, :3], body_org) + w[:, :, 3])
 
     return rigid, site_pose, body_positions
-
-
-def _scalar_functions(tree: _Tree, gravity: np.ndarray, site: _Site, dtype: np.dtype):
-    """The "scalar" form: (rigid-body inverse, site_pose, body_positions); the inverse returns a
-    tuple of J torques (`make_rnea` stacks them where it returns an array).
-
-    Same algorithm as `_vector_functions`, recursing over parents instead of using the ancestor
-    matrix, on tuples of scalars: constants are Python floats (weakly typed, so they take the
-    dtype of the traced values), and `_s_add`/`_s_mul` drop terms with a constant 0 or 1.
-    """
-    n = len(tree.order)
-    local = [(_s_const(tree.c0[s]), _s_const(tree.c1[s]), _s_const(tree.c2[s])) for s in range(n)]
-    axis, anchor = [_s_const(x) for x in tree.axis], [_s_const(x) for x in tree.anchor]
-    com, inertia = [_s_const(x) for x in tree.com], [_s_const(x) for x in tree.inertia]
-    root_acc = ((0.0, 0.0, 0.0), _s_const(-gravity))
-    zero = (0.0, 0.0, 0.0)
-
-    def frames_of(q):
-        """q: (J,) -> per segment (R: 3x3, o: 3) world frame, as nested tuples of scalars."""
-        q = [q[k] for k in range(n)]
-        frames: list[tuple[Any, Any]] = []
-        for s in range(n):
-            angle = _s_sub(q[int(tree.order[s])], float(tree.qpos0[s]))
-            sin: Any
-            omc: Any
-            if tree.hinge[s]:
-                sin, omc = jnp.sin(angle), 1.0 - jnp.cos(angle)
-            else:
-                sin, omc = angle, 0.0
-            c0, c1, c2 = local[s]
-            mat = tuple(
-                tuple(
-                    _s_sum(c0[r][k], _s_mul(sin, c1[r][k]), _s_mul(omc, c2[r][k])) for k in range(4)
-                )
-                for r in range(3)
-            )
-            rot, org = tuple(row[:3] for row in mat), tuple(row[3] for row in mat)
-            p = int(tree.parent[s])
-            if p >= 0:
-                rp, op = frames[p]
-                rot, org = _s_mm(rp, rot), _s_vadd(_s_mv(rp, org), op)
-            frames.append((rot, org))
-        return frames
-
-    def rigid(q, qd, qdd):
-        frames = frames_of(q)
-        qd, qdd = list(qd), list(qdd)
-        motion: list[Any] = []
-        vel: list[Any] = []
-        acc: list[Any] = []
-        wrench: list[Any] = []
-        for s in range(n):
-            rot, org = frames[s]
-            k = int(tree.order[s])
-            axis_w = _s_mv(rot, axis[s])
-            if tree.hinge[s]:
-                sw, sv = axis_w, _s_cross(_s_vadd(_s_mv(rot, anchor[s]), org), axis_w)
-            else:
-                sw, sv = zero, axis_w
-            motion.append((sw, sv))
-            p = int(tree.parent[s])
-            (pw, pv), (pdw, pdv) = (vel[p], acc[p]) if p >= 0 else ((zero, zero), root_acc)
-            xw, xv = _s_scale(qd[k], sw), _s_scale(qd[k], sv)
-            w, v = _s_vadd(pw, xw), _s_vadd(pv, xv)
-            # Joint axes move with the parent: d/dt (S qd) = S qdd + v_parent x (S qd).
-            dw = _s_vsum(pdw, _s_scale(qdd[k], sw), _s_cross(pw, xw))
-            dv = _s_vsum(pdv, _s_scale(qdd[k], sv), _s_cross(pw, xv), _s_cross(pv, xw))
-            vel.append((w, v))
-            acc.append((dw, dv))
-            if tree.mass[s] == 0 and not np.any(tree.inertia[s]):
-                wrench.append((zero, zero))
-                continue
-            com_w = _s_vadd(_s_mv(rot, com[s]), org)
-            acom = _s_vsum(dv, _s_cross(dw, com_w), _s_cross(w, _s_vadd(v, _s_cross(w, com_w))))
-            force = _s_scale(float(tree.mass[s]), acom)
-            i_dw = _s_mv(rot, _s_mv(inertia[s], _s_mtv(rot, dw)))
-            i_w = _s_mv(rot, _s_mv(inertia[s], _s_mtv(rot, w)))
-            moment = _s_vsum(i_dw, _s_cross(w, i_w), _s_cross(com_w, force))
-            wrench.append((force, moment))
-        tau = [0.0] * n
-        for s in reversed(range(n)):  # children come after parents: subtree sums in one sweep
-            force, moment = wrench[s]
-            sw, sv = motion[s]
-            tau[int(tree.order[s])] = _s_add(_s_dot(sw, moment), _s_dot(sv, force))
-            p = int(tree.parent[s])
-            if p >= 0:
-                pf, pm = wrench[p]
-                wrench[p] = (_s_vadd(pf, force), _s_vadd(pm, moment))
-        return tuple(jnp.asarray(t, dtype) for t in tau)
-
-    def as_array(x):
-        if isinstance(x, tuple):
-            return jnp.stack([as_array(e) for e in x])
-        return jnp.asarray(x, dtype)
-
-    site_rel = _s_const(site.offset[:3])
-    site_rot, site_org = tuple(row[:3] for row in site_rel), tuple(row[3] for row in site_rel)
-
-    def site_pose(q):
-        """q: (J,) -> site position (3,) and rotation matrix (3, 3), world frame."""
-        if site.segment < 0:
-            return as_array(site_org), as_array(site_rot)
-        rot, org = frames_of(jnp.asarray(q, dtype))[site.segment]
-        return as_array(_s_vadd(_s_mv(rot, site_org), org)), as_array(_s_mm(rot, site_rot))
-
-    def body_positions(q):
-        """q: (J,) -> (nbody, 3) world body origins (MuJoCo xpos), world body first."""
-        frames = frames_of(jnp.asarray(q, dtype))
-        rows = []
-        for seg, off in zip(tree.body_segment, tree.body_offset):
-            pos = _s_const(off[:3, 3])
-            if seg >= 0:
-                rot, org = frames[seg]
-                pos = _s_vadd(_s_mv(rot, pos), org)
-            rows.append(pos)
-        return as_array(tuple(rows))
-
-    # Thousands of scalar operations: traced once per program and argument dtype, not at
-    # every call site (the optimiser's value, gradient and torque evaluations), then transformed
-    # as one jaxpr by vmap and autodiff. XLA inlines the call; the compiled program is the same.
-    return jax.jit(rigid), site_pose, body_positions
-
-
-# -- scalar algebra for the "scalar" form: Python floats (model constants) and traced scalars --
-
-_SNAP = 1e-14  # model constants this close to 0 (quaternion round-off) are exact zeros
-
-
-def _s_const(x: np.ndarray):
-    """A numpy vector or matrix as nested tuples of Python floats, round-off snapped to 0."""
-    x = np.asarray(x, np.float64)
-    if x.ndim == 1:
-        return tuple(0.0 if abs(v) < _SNAP else float(v) for v in x)
-    return tuple(_s_const(row) for row in x)
-
-
-def _s_zero(x) -> bool:
-    return isinstance(x, float) and x == 0.0
-
-
-def _s_add(a, b):
-    if _s_zero(a):
-        return b
-    if _s_zero(b):
-        return a
-    return a + b
-
-
-def _s_sub(a, b):
-    if _s_zero(b):
-        return a
-    if _s_zero(a):
-        return -b
-    return a - b
-
-
-def _s_mul(a, b):
-    for const, x in ((a, b), (b, a)):
-        if isinstance(const, float):
-            if const == 0.0:
-                return 0.0
-            if const == 1.0:
-                return x
-            if const == -1.0:
-                return -x
-    return a * b
-
-
-def _s_sum(*terms):
-    total = 0.0
-    for t in terms:
-        total = _s_add(total, t)
-    return total
-
-
-def _s_dot(u, v):
-    return _s_sum(*(_s_mul(a, b) for a, b in zip(u, v)))
-
-
-def _s_vadd(u, v):
-    return tuple(_s_add(a, b) for a, b in zip(u, v))
-
-
-def _s_vsum(*vs):
-    return tuple(_s_sum(*parts) for parts in zip(*vs))
-
-
-def _s_scale(s, v):
-    return tuple(_s_mul(s, a) for a in v)
-
-
-def _s_cross(u, v):
-    return (
-        _s_sub(_s_mul(u[1], v[2]), _s_mul(u[2], v[1])),
-        _s_sub(_s_mul(u[2], v[0]), _s_mul(u[0], v[2])),
-        _s_sub(_s_mul(u[0], v[1]), _s_mul(u[1], v[0])),
-    )
-
-
-def _s_mv(a, v):
-    """a @ v, a given as rows."""
-    return tuple(_s_dot(row, v) for row in a)
-
-
-def _s_mtv(a, v):
-    """a.T @ v."""
-    return tuple(_s_dot(col, v) for col in zip(*a))
-
-
-def _s_mm(a, b):
-    cols = tuple(zip(*b))
-    return tuple(tuple(_s_dot(row, col) for col in cols) for row in a)
