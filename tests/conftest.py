@@ -2,6 +2,8 @@
 
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -27,7 +29,19 @@ if "EVOJAX_TEST_XLA_CACHE" in os.environ:
 # RNEA layout that `model.rnea.default_form` picks is then still the users' default one
 # (vector on CPU), since it switches to "scalar" on "=false" only; checked below.
 _FLAG = "--xla_cpu_use_fusion_emitters"
-_SET_FLAG = _FLAG not in os.environ.get("XLA_FLAGS", "")
+
+
+def _xla_knows(flag: str) -> bool:
+    """Whether this jaxlib's XLA has ``flag`` (gone in jax 0.11; XLA exits on an unknown flag in
+    XLA_FLAGS): tried in a child process (once per test run where it is known: the workers then
+    inherit the flag and skip the trial)."""
+    env = {**os.environ, "XLA_FLAGS": f"{flag}=0", "JAX_PLATFORMS": "cpu"}
+    code = "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True)
+    return done.returncode == 0
+
+
+_SET_FLAG = _FLAG not in os.environ.get("XLA_FLAGS", "") and _xla_knows(_FLAG)
 if _SET_FLAG:
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FLAG}=0".strip()
 

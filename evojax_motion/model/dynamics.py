@@ -19,6 +19,7 @@ the torque is the pure rigid-body one.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -104,10 +105,31 @@ def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
     for that program only (`model.rnea.UNFUSED_CPU_OPTIONS`), where it runs about twice as
     fast as the default vector layout (`BENCHMARKS.md`, dynamics throughput). Every function of
     the returned ``dyn`` must be traced only into programs compiled with those options: under the
-    default CPU options the scalar layout's gradients are far slower. Elsewhere ``(dyn, None)``.
+    default CPU options the scalar layout's gradients are far slower. Elsewhere, and with a jaxlib
+    whose CPU compiler no longer has that option (`compiler_accepts`), ``(dyn, None)``.
     """
-    if jax.default_backend() == "cpu" and dyn.backend == "rnea":
-        from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS
+    from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS  # as in make_dynamics
 
+    if (
+        jax.default_backend() == "cpu"
+        and dyn.backend == "rnea"
+        and compiler_accepts(**UNFUSED_CPU_OPTIONS)
+    ):
         return make_dynamics(dyn.robot, "rnea", dyn.dtype, "scalar"), dict(UNFUSED_CPU_OPTIONS)
     return dyn, None
+
+
+@functools.cache
+def compiler_accepts(**options: Any) -> bool:
+    """Whether the default backend's compiler accepts these jit ``compiler_options``.
+
+    Tried once per set, on a one-operation program, rather than read from a version number:
+    XLA's CPU fusion emitters and their switch (`model.rnea.UNFUSED_CPU_OPTIONS`) are newer than
+    jax 0.5 and gone in later releases (jax 0.11 refuses it: "No such compile option").
+    """
+    probe = jax.jit(lambda x: x + 1.0).lower(np.zeros((), np.float32))
+    try:
+        probe.compile(options)
+    except jax.errors.JaxRuntimeError:
+        return False
+    return True

@@ -298,6 +298,24 @@ def test_dynamics_is_a_static_argument_that_compiles_once():
     assert np.abs(np.asarray(g1) - np.asarray(g2)).max() > 0.0
 
 
+def test_unfused_program_only_where_the_compiler_takes_its_options(monkeypatch):
+    """`unfused_cpu_program` asks the compiler (`compiler_accepts`): an option it lacks is refused,
+    and a jaxlib without the fusion-emitter switch (jax 0.11 and later) gets the default layout
+    with default options instead of a compile error."""
+    from evojax_motion.model import dynamics as dynamics_module
+    from evojax_motion.model.dynamics import compiler_accepts, unfused_cpu_program
+    from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS
+
+    assert compiler_accepts()
+    assert not compiler_accepts(xla_no_such_compile_option=False)
+    dyn = make_dynamics(ROBOTS["mahru_arm"]())
+    fast, options = unfused_cpu_program(dyn)
+    if jax.default_backend() == "cpu" and compiler_accepts(**UNFUSED_CPU_OPTIONS):
+        assert fast.form == "scalar" and options == UNFUSED_CPU_OPTIONS
+    monkeypatch.setattr(dynamics_module, "compiler_accepts", lambda **options: False)
+    assert unfused_cpu_program(dyn) == (dyn, None)
+
+
 def test_user_errors():
     robot = ROBOTS["mahru_arm"]()
     with pytest.raises(UserError, match="dynamics: expected one of"):
