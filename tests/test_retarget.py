@@ -376,3 +376,46 @@ def test_humanoid_keypoints_start_below_the_chest(tmp_path):
         "site:palm": "hand",
     }
     assert rt.robot_keypoints(robot).weights == (1.0, 1.0, 1.0, 1.0)
+
+
+FINGERTIP_ARM = """<mujoco model="fingertip_arm">
+  <compiler angle="radian"/>
+  <worldbody>
+    <body name="upper" pos="0 0 0.5">
+      <joint name="shoulder" axis="0 1 0" range="-2 2"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+      <body name="fore" pos="0.3 0 0">
+        <joint name="elbow" axis="0 1 0" range="-2 2"/>
+        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.03"/>
+        <body name="palm" pos="0.25 0 0">
+          <joint name="wrist" axis="0 1 0" range="-2 2"/>
+          <geom type="box" size="0.04 0.03 0.01" pos="0.04 0 0"/>
+          <body name="finger_a" pos="0.08 0.02 0">
+            <joint name="finger_a" type="slide" axis="0 1 0" range="-0.02 0"/>
+            <geom type="box" size="0.02 0.005 0.01" pos="0.02 0 0"/>
+            <site name="tip" pos="0.04 0 0"/>
+          </body>
+          <body name="finger_b" pos="0.08 -0.02 0">
+            <joint name="finger_b" type="slide" axis="0 1 0" range="0 0.02"/>
+            <geom type="box" size="0.02 0.005 0.01" pos="0.02 0 0"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_a_branch_below_the_wrist_is_not_the_arm(tmp_path):
+    """The end effector on a finger: the palm carries the other finger, but no arm starts below
+    it, so the whole chain is the arm."""
+    path = tmp_path / "fingertip_arm.xml"
+    path.write_text(FINGERTIP_ARM)
+    robot = load_robot(path)
+    assert rt.guess_keypoints(robot) == {
+        "body:upper": "shoulder",
+        "body:fore": "elbow",
+        "body:palm": "wrist",
+        "site:tip": "hand",
+    }
