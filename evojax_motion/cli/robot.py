@@ -3,7 +3,8 @@
 The first step of bringing your own arm (docs/robot_models.md): load an MJCF file as training
 will (`model.robot.load_robot`) and print the files read, the controlled joints with their ranges
 (continuous ones marked), torque limits and where they come from, velocity limits, the end
-effector, the rest posture and where it comes from, and a YAML ``robot:`` section to start a
+effector, the rest posture and where it comes from, the reach and the default region of the
+synthetic demonstrations (`demonstrations.workspace`), and a YAML ``robot:`` section to start a
 config from.
 """
 
@@ -83,6 +84,43 @@ def _table(rows: list[list[str]]) -> list[str]:
     return ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
 
 
+def _workspace_lines(robot) -> list[str]:
+    """The reach (`demonstrations.workspace.sample_workspace` within the limits less the demos'
+    default margin) and the default region of ``demos`` (a shipped robot's preset, else derived:
+    `derive_region`); an empty workspace is said, not raised, so the rest of the report stays."""
+    from evojax_motion.demonstrations.workspace import (
+        ROBOT_PRESETS,
+        WORKSPACE_SAMPLES,
+        derive_region,
+        sample_workspace,
+        workspace_shoulder,
+    )
+    from evojax_motion.settings.demonstrations import DemoSettings
+
+    margin = DemoSettings().limit_margin_deg
+    workspace = sample_workspace(robot, math.radians(margin))
+    shoulder, centre, reach = workspace_shoulder(workspace)
+    at = np.array2string(centre, precision=4, separator=", ")
+    lines = [
+        f"reach: {reach:.3f} m from body {workspace.chain[shoulder]!r} at {at} m (the deepest "
+        f"body that stays put; the end effector over {WORKSPACE_SAMPLES} postures within the "
+        f"limits less {margin:g} deg)"
+    ]
+    if robot.name in ROBOT_PRESETS:
+        region, source = ROBOT_PRESETS[robot.name].region, "the shipped robot's preset"
+    else:
+        try:
+            region, source = derive_region(robot, workspace), "derived from the reach"
+        except UserError as e:
+            return [*lines, f"demos region: none: {e}"]
+    lines.append(
+        f"demos region ({source}): about body {region.frame!r}, radius {region.radius[0]:g} .. "
+        f"{region.radius[1]:g} m, azimuth {region.azimuth_deg[0]:g} .. {region.azimuth_deg[1]:g} "
+        f"deg, elevation {region.elevation_deg[0]:g} .. {region.elevation_deg[1]:g} deg"
+    )
+    return lines
+
+
 def describe_robot(
     robot,
     model: str,
@@ -148,6 +186,7 @@ def describe_robot(
     lines.append(f"end effector: {what}; at the rest posture {at} m (world)")
     rest = np.array2string(robot.rest, precision=4, separator=", ")
     lines.append(f"rest posture: {robot.rest_source}: {rest}")
+    lines += _workspace_lines(robot)
 
     section: dict = {}
     if model in SHIPPED_ROBOTS:

@@ -142,6 +142,16 @@ def sample_workspace(
     return Workspace(hand, names, body, rest_hand, rest_body)
 
 
+def workspace_shoulder(workspace: Workspace) -> tuple[int, np.ndarray, float]:
+    """``(index, centre, reach)``: the shoulder, the deepest body of ``workspace.chain`` that
+    moves less than `SHOULDER_SPREAD` x the hand's extent (the world when none does), its origin
+    at the rest posture (3,) [m], and the reach [m], the farthest sampled hand position from it."""
+    spread = np.linalg.norm(workspace.body_pos - workspace.rest_body, axis=-1).max(axis=0)
+    shoulder = int(np.flatnonzero(spread <= SHOULDER_SPREAD * workspace.extent)[-1])
+    centre = workspace.rest_body[shoulder]
+    return shoulder, centre, float(np.linalg.norm(workspace.hand - centre, axis=1).max())
+
+
 def derive_region(robot: Robot, workspace: Workspace) -> CatchRegion:
     """The catch region of a robot without a preset, from its sampled workspace (`DemoSettings`
     ``region`` says how). Raises `UserError` when the end effector does not move."""
@@ -152,10 +162,7 @@ def derive_region(robot: Robot, workspace: Workspace) -> CatchRegion:
             f"{extent:.2g} m over {len(workspace.hand)} postures drawn within the joint limits: "
             "an empty workspace; expected joints that move it (robot.joints, robot.end_effector)"
         )
-    spread = np.linalg.norm(workspace.body_pos - workspace.rest_body, axis=-1).max(axis=0)
-    shoulder = int(np.flatnonzero(spread <= SHOULDER_SPREAD * extent)[-1])  # the world: 0
-    centre = workspace.rest_body[shoulder]
-    reach = float(np.linalg.norm(workspace.hand - centre, axis=1).max())
+    shoulder, centre, reach = workspace_shoulder(workspace)
     ahead = workspace.rest_hand[:2] - centre[:2]
     front = 0.0
     if np.linalg.norm(ahead) >= FRONT_MIN_FRACTION * reach:

@@ -294,3 +294,128 @@ def test_conditions_and_costs_match_references(mahru):
         np.testing.assert_allclose(cond[i], d.site_xpos[robot.site_id], atol=TOL_FK)
         ref = float(ref_cost(q[i].astype(np.float32), np.float32(dur[i])))
         assert cost[i] == pytest.approx(ref, rel=1e-5)
+
+
+# A humanoid as published ones are built (Unitree G1-like): a free root, legs, a 3-joint waist,
+# both arms off the chest; the right arm's shoulder joints sit in separate bodies a few cm apart
+# and its wrist has three joints.
+HUMANOID = """<mujoco model="humanoid_waist">
+  <compiler angle="radian"/>
+  <worldbody>
+    <body name="pelvis" pos="0 0 0.8">
+      <freejoint name="floating_base"/>
+      <geom type="sphere" size="0.1" mass="5"/>
+      <body name="left_thigh" pos="0 0.1 -0.1">
+        <joint name="left_hip_pitch" axis="0 1 0" range="-2 2"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.4" size="0.05"/>
+      </body>
+      <body name="waist_yaw_link" pos="0 0 0.05">
+        <joint name="waist_yaw" axis="0 0 1" range="-2.6 2.6"/>
+        <geom type="sphere" size="0.03" mass="0.5"/>
+        <body name="waist_roll_link" pos="-0.004 0 0.03">
+          <joint name="waist_roll" axis="1 0 0" range="-0.5 0.5"/>
+          <geom type="sphere" size="0.03" mass="0.5"/>
+          <body name="torso">
+            <joint name="waist_pitch" axis="0 1 0" range="-0.5 0.5"/>
+            <geom type="box" size="0.08 0.12 0.15" pos="0 0 0.15" mass="8"/>
+            <body name="left_upper_arm" pos="0 0.1 0.24">
+              <joint name="left_shoulder_pitch" axis="0 1 0" range="-3 2.6"/>
+              <geom type="capsule" fromto="0 0 0 0 0 -0.25" size="0.03"/>
+            </body>
+            <body name="r_sh_pitch" pos="0.004 -0.1 0.24">
+              <joint name="r_shoulder_pitch" axis="0 0.97 -0.24" range="-3 2.6"/>
+              <geom type="sphere" size="0.03" mass="0.5"/>
+              <body name="r_sh_roll" pos="0 -0.038 -0.014">
+                <joint name="r_shoulder_roll" axis="1 0 0" range="-2.2 1.6"/>
+                <geom type="sphere" size="0.03" mass="0.5"/>
+                <body name="r_sh_yaw" pos="0 -0.006 -0.1">
+                  <joint name="r_shoulder_yaw" axis="0 0 1" range="-2.6 2.6"/>
+                  <geom type="capsule" fromto="0 0 0 0 0 -0.08" size="0.03" mass="1"/>
+                  <body name="r_elbow" pos="0.016 0 -0.1">
+                    <joint name="r_elbow" axis="0 1 0" range="-1 2"/>
+                    <geom type="capsule" fromto="0 0 0 0.1 0 -0.01" size="0.025" mass="0.6"/>
+                    <body name="r_wr_roll" pos="0.1 -0.002 -0.01">
+                      <joint name="r_wrist_roll" axis="1 0 0" range="-1.9 1.9"/>
+                      <geom type="sphere" size="0.02" mass="0.3"/>
+                      <body name="r_wr_pitch" pos="0.038 0 0">
+                        <joint name="r_wrist_pitch" axis="0 1 0" range="-1.6 1.6"/>
+                        <geom type="sphere" size="0.02" mass="0.3"/>
+                        <body name="r_wr_yaw" pos="0.046 0 0">
+                          <joint name="r_wrist_yaw" axis="0 0 1" range="-1.6 1.6"/>
+                          <geom type="box" size="0.04 0.02 0.01" pos="0.04 0 0" mass="0.3"/>
+                          <site name="palm" pos="0.08 0 0"/>
+                        </body>
+                      </body>
+                    </body>
+                  </body>
+                </body>
+              </body>
+            </body>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_humanoid_keypoints_start_below_the_chest(tmp_path):
+    """The default joints run from the pelvis through the waist; the arm's key points start below
+    the chest, which carries the other arm (not at the waist's first tilting joint), and the elbow
+    is the bend in the middle of the arm (not the shoulder's second joint 4 cm out). Its upper arm
+    hangs: every key point is matched."""
+    path = tmp_path / "humanoid.xml"
+    path.write_text(HUMANOID)
+    robot = load_robot(path)
+    assert robot.joint_names[:4] == ("waist_yaw", "waist_roll", "waist_pitch", "r_shoulder_pitch")
+    assert rt.guess_keypoints(robot) == {
+        "body:r_sh_pitch": "shoulder",
+        "body:r_elbow": "elbow",
+        "body:r_wr_yaw": "wrist",
+        "site:palm": "hand",
+    }
+    assert rt.robot_keypoints(robot).weights == (1.0, 1.0, 1.0, 1.0)
+
+
+FINGERTIP_ARM = """<mujoco model="fingertip_arm">
+  <compiler angle="radian"/>
+  <worldbody>
+    <body name="upper" pos="0 0 0.5">
+      <joint name="shoulder" axis="0 1 0" range="-2 2"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+      <body name="fore" pos="0.3 0 0">
+        <joint name="elbow" axis="0 1 0" range="-2 2"/>
+        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.03"/>
+        <body name="palm" pos="0.25 0 0">
+          <joint name="wrist" axis="0 1 0" range="-2 2"/>
+          <geom type="box" size="0.04 0.03 0.01" pos="0.04 0 0"/>
+          <body name="finger_a" pos="0.08 0.02 0">
+            <joint name="finger_a" type="slide" axis="0 1 0" range="-0.02 0"/>
+            <geom type="box" size="0.02 0.005 0.01" pos="0.02 0 0"/>
+            <site name="tip" pos="0.04 0 0"/>
+          </body>
+          <body name="finger_b" pos="0.08 -0.02 0">
+            <joint name="finger_b" type="slide" axis="0 1 0" range="0 0.02"/>
+            <geom type="box" size="0.02 0.005 0.01" pos="0.02 0 0"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_a_branch_below_the_wrist_is_not_the_arm(tmp_path):
+    """The end effector on a finger: the palm carries the other finger, but no arm starts below
+    it, so the whole chain is the arm."""
+    path = tmp_path / "fingertip_arm.xml"
+    path.write_text(FINGERTIP_ARM)
+    robot = load_robot(path)
+    assert rt.guess_keypoints(robot) == {
+        "body:upper": "shoulder",
+        "body:fore": "elbow",
+        "body:palm": "wrist",
+        "site:tip": "hand",
+    }

@@ -9,6 +9,7 @@ References are MuJoCo's own: ``MjModel.from_xml_path`` of the original files, ``
 and ``mj_inverse``.
 """
 
+import re
 import shutil
 from pathlib import Path
 
@@ -520,6 +521,12 @@ def test_cli_robot_report_and_config_section(include_model, capsys):
     assert "continuous" in rows["pitch"] and "-2 .. 2 rad" in rows["yaw"]
     assert "'arm' (site 'end_effector' added to body 'arm')" in out
     assert "rest posture: qpos0 (the model has no keyframe): [0., 0.]" in out
+    # the reach from the deepest body that stays put, and the demos region derived from it
+    reach = re.search(r"^reach: (\S+) m from body '(\w+)'", out, re.M)
+    region = re.search(r"^demos region \(derived from the reach\): about body '(\w+)', radius "
+                       r"(\S+) \.\. (\S+) m", out, re.M)  # fmt: skip
+    assert reach and region, out
+    assert region[1] == reach[2] and float(region[3]) == pytest.approx(0.75 * float(reach[1]), 1e-3)
     section = yaml.safe_load(out[out.index("\nrobot:") :])
     assert section["robot"]["end_effector_offset"] == [0.0, 0.0, 0.3]
     robot = make_robot(config_from_dict(section))  # the printed section is a working config

@@ -6,8 +6,10 @@ its end-effector site, `RobotKeyPoints`) matched to human key points (shoulder, 
 hand):
 
 0. Key points and weights (`robot_keypoints`) come from the robot's kinematic chain when not
-   given (`guess_keypoints`): the shoulder is the first joint after a vertical base yaw, the
-   elbow the first bending joint after it, the wrist the last one, the hand the end effector.
+   given (`guess_keypoints`): below the last body that carries another limb (a humanoid's
+   chest), the shoulder is the first joint after a vertical base yaw, the wrist the last bending
+   joint, the elbow the bending joint between them farthest from both, the hand the end
+   effector.
    `default_weights`: every key point when the robot's upper arm can hang below its shoulder as
    a person's does (an anthropomorphic arm), else the hand only (the others still set the scale).
 1. Scaling (`scale_to_robot`): the human key points, relative to the person's shoulder in a frame
@@ -152,44 +154,101 @@ def _rest_kinematics(robot, q=None) -> mujoco.MjData:
 def guess_keypoints(robot) -> dict[str, str]:
     """Robot key points from the kinematic chain of the controlled hinges (at the rest posture).
 
-    shoulder: the body of the first hinge whose axis is more than `VERTICAL_DEG` from the
-    vertical (a base yaw before it turns the whole arm), or of the first hinge. elbow and wrist:
-    the bodies of the first and the last *bending* hinge after it, whose axis is more than
-    `ROLL_DEG` from the link that leads to it (rolls about a link move no point of the chain);
-    hinges at the same point as the previous one count as that point. hand: the end-effector
-    site. Names do not matter: e.g. mahru_arm's upper_arm, forearm, hand and Kinova Gen3's
-    joint_2, joint_4 and joint_6 bodies.
+    The arm starts below the deepest body of the chain that carries another limb (a joint in a
+    branch off the chain: a humanoid's chest with the other arm, its pelvis with the legs), so a
+    waist is not taken for the shoulder; where the hinges below it do not make an arm
+    (`_arm_keypoints`), or nothing branches, the whole chain. Along it (`_arm_keypoints`): the
+    shoulder is the body of the first hinge whose axis is more than `VERTICAL_DEG` from the
+    vertical (a base yaw before it turns the whole arm), or of the first hinge; the wrist the
+    body of the last *bending* hinge after it, whose axis is more than `ROLL_DEG` from the link
+    that leads to it (rolls about a link move no point of the chain); the elbow the bending hinge
+    between them farthest from both (the middle of the arm: not a second shoulder joint a few cm
+    out, nor a first wrist joint); hinges at the same point as the previous one count as that
+    point. hand: the end-effector site. Names do not matter: e.g. mahru_arm's upper_arm,
+    forearm, hand and Kinova Gen3's joint_2, joint_4 and joint_6 bodies.
     """
     m = robot.mj_model
     d = _rest_kinematics(robot)
     hinges = [j for j in robot.joint_ids if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_HINGE)]
     out: dict[str, str] = {}
-    if hinges:
-
-        def body(j: int) -> str:
-            return f"body:{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.jnt_bodyid[j]))}"
-
-        vertical = np.cos(np.deg2rad(VERTICAL_DEG))
-        first = next((k for k, j in enumerate(hinges) if abs(d.xaxis[j][2]) < vertical), 0)
-        out[body(hinges[first])] = "shoulder"
-        prev, link = d.xanchor[hinges[first]].copy(), None
-        bends: list[int] = []
-        for j in hinges[first + 1 :]:
-            v = d.xanchor[j] - prev
-            if np.linalg.norm(v) > SAME_POINT_M:
-                link, prev = v / np.linalg.norm(v), d.xanchor[j].copy()
-            elif link is None:
-                continue  # at the shoulder: one of its axes
-            elif bends and np.linalg.norm(d.xanchor[j] - d.xanchor[bends[-1]]) <= SAME_POINT_M:
-                continue  # at the last bend's point
-            if abs(d.xaxis[j] @ link) < np.cos(np.deg2rad(ROLL_DEG)):
-                bends.append(j)
-        bodies = [body(j) for j in bends if body(j) not in out]
-        if bodies:
-            out[bodies[0]] = "elbow"
-        if len(bodies) > 1 and bodies[-1] != bodies[0]:
-            out[bodies[-1]] = "wrist"
+    for top in _branch_bodies(robot):
+        below = [j for j in hinges if _is_below(m, int(m.jnt_bodyid[j]), top)]
+        out = _arm_keypoints(m, d, below)
+        if "wrist" in out.values():
+            break
+    else:
+        out = _arm_keypoints(m, d, hinges)
     out[f"site:{robot.site_name}"] = "hand"
+    return out
+
+
+def _is_below(m: mujoco.MjModel, body: int, top: int) -> bool:
+    """Whether ``body`` is a strict descendant of ``top``."""
+    while body != 0:
+        body = int(m.body_parentid[body])
+        if body == top:
+            return True
+    return False
+
+
+def _branch_bodies(robot) -> list[int]:
+    """Bodies on the chain from the world to the end effector's body (that body excluded) with a
+    child off the chain whose subtree holds a joint (another limb), deepest first."""
+    m = robot.mj_model
+    chain, b = [], int(m.body_parentid[int(m.site_bodyid[robot.site_id])])
+    while b != 0:
+        chain.append(b)
+        b = int(m.body_parentid[b])
+    on_chain = {*chain, int(m.site_bodyid[robot.site_id])}
+    jointed = {int(m.jnt_bodyid[j]) for j in range(m.njnt)}
+    limbs = {
+        int(m.body_parentid[c])
+        for c in range(1, m.nbody)
+        if c not in on_chain and any(c == j or _is_below(m, j, c) for j in jointed)
+    }
+    return [b for b in chain if b in limbs]
+
+
+def _arm_keypoints(m: mujoco.MjModel, d: mujoco.MjData, hinges: list[int]) -> dict[str, str]:
+    """Shoulder, elbow and wrist bodies (``body:NAME`` -> key point) of the chain of ``hinges``
+    (joint ids, root first) by the rule of `guess_keypoints`; fewer where it has fewer bends."""
+    out: dict[str, str] = {}
+    if not hinges:
+        return out
+
+    def body(j: int) -> str:
+        return f"body:{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.jnt_bodyid[j]))}"
+
+    vertical = np.cos(np.deg2rad(VERTICAL_DEG))
+    first = next((k for k, j in enumerate(hinges) if abs(d.xaxis[j][2]) < vertical), 0)
+    out[body(hinges[first])] = "shoulder"
+    prev, link = d.xanchor[hinges[first]].copy(), None
+    bends: list[int] = []
+    for j in hinges[first + 1 :]:
+        v = d.xanchor[j] - prev
+        if np.linalg.norm(v) > SAME_POINT_M:
+            link, prev = v / np.linalg.norm(v), d.xanchor[j].copy()
+        elif link is None:
+            continue  # at the shoulder: one of its axes
+        elif bends and np.linalg.norm(d.xanchor[j] - d.xanchor[bends[-1]]) <= SAME_POINT_M:
+            continue  # at the last bend's point
+        if abs(d.xaxis[j] @ link) < np.cos(np.deg2rad(ROLL_DEG)):
+            bends.append(j)
+    bends = [j for j in bends if body(j) not in out]
+    if not bends:
+        return out
+    wrist = bends[-1]
+    between = bends[:-1]
+    if not between:  # one bend: the elbow, no wrist
+        out[body(wrist)] = "elbow"
+        return out
+    shoulder, end = d.xanchor[hinges[first]], d.xanchor[wrist]
+    middle = [min(np.linalg.norm(d.xanchor[j] - shoulder), np.linalg.norm(d.xanchor[j] - end))
+              for j in between]  # fmt: skip
+    elbow = between[int(np.argmax(middle))]
+    out[body(elbow)] = "elbow"
+    if body(wrist) != body(elbow):
+        out[body(wrist)] = "wrist"
     return out
 
 
