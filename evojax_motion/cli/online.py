@@ -234,10 +234,18 @@ def cmd_generate(args) -> int:
             where = f"{missed}; {nearest}"
         else:
             _, miss = _miss(model, motion, 0)
-            where = (
-                f"target {_vec(target)} m is outside the reachable region (the hand would miss it "
-                f"by {miss * 1e3:.1f} mm; tolerance {tol * 1e3:g} mm): {nearest}"
-            )
+            if miss <= tol:  # the arm reaches it; the database has too few motions near it
+                where = (
+                    f"target {_vec(target)} m is outside the database's region: "
+                    f"{int(motion.n_inside[0])} valid motions within basis.radius of it "
+                    f"({model.settings_source}), {float(motion.region_gap[0]) * 1e3:.0f} mm "
+                    f"too far for the neighbours the query needs: {nearest}"
+                )
+            else:
+                where = (
+                    f"target {_vec(target)} m is outside the reachable region (the hand would "
+                    f"miss it by {miss * 1e3:.1f} mm; tolerance {tol * 1e3:g} mm): {nearest}"
+                )
         if not args.nearest:
             raise UserError(f"{where}; pass --nearest to use it; nothing written")
         note = f"{where}; using it (--nearest)"

@@ -488,7 +488,8 @@ def _write_plots(out, cfg, robot, db, conditions, metrics, baseline) -> list[str
     both = np.asarray(first.valid[n_human:]) & np.asarray(db.valid[n_human:])
     c = cfg.train.plot_condition
     if c is None and both.any():  # the condition that changed most: the most telling Fig. 8
-        drop = np.where(both, first.cost[n_human:] - db.cost[n_human:], -np.inf)
+        drop = np.full(both.shape, -np.inf)  # slots empty in either have cost inf: left out
+        drop[both] = np.asarray(first.cost[n_human:])[both] - np.asarray(db.cost[n_human:])[both]
         c = int(np.argmax(drop))
     if c is None or not both[c]:
         return paths
