@@ -186,3 +186,26 @@ def test_cli_catch(tmp_path, capsys, monkeypatch):
     msg = capsys.readouterr().out
     assert msg.startswith("note: the ball cannot be caught") and "moving to the reachable" in msg
     assert read_trajectory(out2).q.shape == data.q.shape
+
+
+def test_fit_speed_straightens_only_the_joints_too_fast():
+    """A deadline: the joint whose path is too fast blends toward minimum jerk until it fits; a
+    joint fast enough keeps its path bit for bit; the BCs stay."""
+    from evojax_motion.motion.timegrid import derivatives, make_time_grid
+    from evojax_motion.online.limits import fit_speed, minimum_jerk
+
+    grid = make_time_grid(100)
+    q0, qf = np.zeros((1, 2), np.float32), np.array([[1.0, 1.0]], np.float32)
+    smooth = np.asarray(minimum_jerk(grid, q0, qf))
+    s = np.asarray(grid.s, np.float32)[None, :, None]
+    wiggle = smooth + 0.3 * np.sin(2 * np.pi * 3 * s) * np.sin(np.pi * s) ** 3  # fast joint
+    q = np.concatenate([wiggle[..., :1], smooth[..., 1:]], axis=2)
+    duration = np.array([1.0], np.float32)
+    limit = np.array([3.0, 3.0], np.float32)  # minimum jerk peaks at 1.875 rad/s
+    before = np.abs(np.asarray(derivatives(grid, q, duration)[0])).max(axis=1)[0]
+    assert before[0] > limit[0] >= before[1]
+    out, lam = (np.asarray(a) for a in fit_speed(grid, q, q0, qf, duration, limit))
+    after = np.abs(np.asarray(derivatives(grid, out, duration)[0])).max(axis=1)[0]
+    assert 0 < lam[0, 0] < 1 and lam[0, 1] == 0 and (after <= limit).all()
+    np.testing.assert_array_equal(out[..., 1], q[..., 1])
+    np.testing.assert_allclose(out[0, [0, -1]], np.r_[q0, qf], atol=1e-6)

@@ -55,6 +55,7 @@ from evojax_motion.motion.timegrid import TimeGrid, derivatives
 from evojax_motion.online.limits import (
     VELOCITY,
     enforce_limits,
+    fit_speed,
     joint_limits_f32,
     minimum_jerk,
     peak_margin,
@@ -185,6 +186,8 @@ def finish_motion(
     vel_lim, tau_lim, vel_use, tau_use = (
         jnp.asarray(a, q.dtype) for a in usable_limits(dyn.robot, settings)
     )
+    if max_duration is not None:  # a deadline: joints too fast for it straighten (`fit_speed`)
+        q = fit_speed(grid, q, boundary.q0, boundary.qf, jnp.maximum(top, asked), vel_use)[0]
     inv = jax.vmap(jax.vmap(dyn.inverse))
 
     def usage(qd, tau):  # (C, T, J): share of the usable limit, torque and velocity
