@@ -177,8 +177,13 @@ def plan_catch(
     # Stage 0, every sample: the nearest valid condition (a lower bound of the region's gap)
     # and a guess of the score with the database's mean duration; the REGION_SAMPLES best go on.
     cond, valid = jnp.asarray(db.condition, dtype), jnp.asarray(db.valid)
-    d2 = jnp.sum((pos[:, :, None, :] - cond[None, None]) ** 2, axis=-1)  # (B, S, N)
-    nearest = jnp.sqrt(jnp.min(jnp.where(valid, d2, jnp.inf), axis=-1))
+    # |p - c|^2 by one matrix product (a few mm of rounding at the radius: only a ranking here)
+    d2 = (
+        jnp.sum(pos**2, axis=-1)[..., None]
+        + jnp.sum(cond**2, axis=-1)
+        - 2.0 * jnp.einsum("bsk,nk->bsn", pos, cond)
+    )  # (B, S, N)
+    nearest = jnp.sqrt(jnp.maximum(jnp.min(jnp.where(valid, d2, jnp.inf), axis=-1), 0.0))
     gap0 = jnp.maximum(nearest - basis_settings.radius, 0.0)
     mean_duration = jnp.sum(jnp.where(valid, db.duration, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
     guess = jnp.minimum(

@@ -24,7 +24,7 @@ from evojax_motion.model.robot import Robot
 PALM_TOLERANCE = 2e-3  # [m] the site lies on a geom's surface when this close to it
 FACING_GOAL = 0.7  # the palm is turned toward the ball until n . facing reaches this
 FACING_RAMP = 0.2  # the turning fades in over this much of n . facing below the goal
-FACING_ITERS = 30  # damped least-squares iterations of `catch_posture`
+FACING_ITERS = 15  # damped least-squares iterations of `catch_posture`
 FACING_DAMPING = 1e-2  # [m] lambda of those iterations (error-dependent on top, as `model.ik`)
 FACING_STEP = 0.3  # [rad] largest joint step per iteration (trust region, as `model.ik`)
 PREFERENCE_PULL = 0.5  # null-space pull toward the human-like posture per iteration
