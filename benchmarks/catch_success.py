@@ -15,7 +15,8 @@ controller of `simulate` with the ball in flight. Per database (human rows only,
 
 - reachable throws: the ball's path crosses the reachable set (`CatchPlan.passes_region`);
   unreachable ones are counted apart; infeasible plans: reachable, but no catch in time or no
-  usable motion (`CatchPlan.feasible`, `OnlineResult.ok`);
+  usable motion (`CatchPlan.feasible`, `OnlineResult.ok`); of them too fast: no catch point
+  leaves the arm the time its velocity and torque limits need (`OnlineResult.within_time`);
 - success rate: caught (the physical criterion of `simulate`) / reachable throws;
 - eq. 5 cost of the planned motion (the paper's Fig. 5 quantity, 0.5 int |tau|^2 dt), mean and
   median over the planned throws; tracking error (RMS/max, rad and mm at the hand); fraction of
@@ -133,6 +134,8 @@ def evaluate_database(
             "cost": float(motion.cost[0]),
             "catch_point": np.asarray(plan.catch_point[0]),
             "duration": float(motion.duration[0]),
+            "in_time": bool(plan.feasible[0] and motion.within_time[0]),
+            "palm_facing": float(plan.palm_facing[0]),
         }
         if row["planned"]:
             ball = Ball(p0[i].astype(np.float64), v0[i].astype(np.float64))
@@ -143,6 +146,7 @@ def evaluate_database(
         rows.append(row)
     reachable = np.array([r["reachable"] for r in rows])
     planned = np.array([r["planned"] for r in rows])
+    in_time = np.array([r["in_time"] for r in rows])
     sims: list[Summary] = [r["sim"] for r in rows if r["planned"]]
     caught = sum(bool(s.caught) for s in sims)
     cost = np.array([r["cost"] for r in rows if r["planned"]])
@@ -152,6 +156,7 @@ def evaluate_database(
         "reachable": int(reachable.sum()),
         "unreachable": int((~reachable).sum()),
         "infeasible_plans": int((reachable & ~planned).sum()),
+        "infeasible_too_fast": int((reachable & ~planned & ~in_time).sum()),
         "planned": int(planned.sum()),
         "caught": int(caught),
         "success_rate": caught / max(int(reachable.sum()), 1),
@@ -165,6 +170,9 @@ def evaluate_database(
         "at_torque_limit": float(np.mean([s.at_torque_limit for s in sims])) if sims else None,
         "closest_mm_missed": _pct([1e3 * s.closest_distance for s in sims if not s.caught],
                                   (50,)),
+        "closest_mm_caught": _pct([1e3 * s.closest_distance for s in sims if s.caught],
+                                  (50, 99)),
+        "palm_facing": _pct([r["palm_facing"] for r in rows if r["planned"]], (1, 50)),
         "planning_s": _pct(plan_s),
         "compile_s": compile_s,
     }  # fmt: skip
@@ -211,7 +219,7 @@ def markdown(result: dict) -> str:
         f"{result['throws']} throws, seed {result['seed']}; load average "
         f"{result['load_average']}; run `{result['run']}`.",
         "",
-        "| database | entries | reachable | unreachable | infeasible | caught | success "
+        "| database | entries | reachable | unreachable | infeasible (too fast) | caught | success "
         "| cost mean / median | hand RMS p50 / max mm | at torque limit | plan p50 / p99 ms "
         "| optimised median (online / opt p50) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
@@ -230,7 +238,8 @@ def markdown(result: dict) -> str:
 
         lines.append(
             f"| {name} | {d['entries']} | {d['reachable']} | {d['unreachable']} | "
-            f"{d['infeasible_plans']} | {d['caught']} | {d['success_rate']:.1%} | "
+            f"{d['infeasible_plans']} ({d['infeasible_too_fast']}) | {d['caught']} | "
+            f"{d['success_rate']:.1%} | "
             f"{f(d['cost']['mean'], '.4g')} / {f(d['cost']['median'], '.4g')} | "
             f"{f(d['hand_rms_mm']['p50'], '.2f')} / {f(d['hand_max_mm'], '.1f')} | "
             f"{f(d['at_torque_limit'], '.2%')} | {1e3 * d['planning_s']['p50']:.1f} / "

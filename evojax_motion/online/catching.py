@@ -18,11 +18,28 @@ Catch point. A sample ``(t_i, p_i)`` can be the catch when
     ``time margin = (t_i - reaction_time) - D_nat(p_i) / speedup >= 0``.
 Among those, the sample with the largest ``min(time margin / time_scale, depth / space_scale)``
 is chosen (depth: how far ``p_i`` lies inside the learned region): a catch robust to both a late
-start and an error in the predicted point. The motion ends at ``t_i`` with the hand at rest at
-``p_i``; its duration is ``min(t_i - reaction_time, D_nat)`` (an early arm waits rather than
+start and an error in the predicted point. The motion ends at ``t_i`` with the hand at rest
+there; its duration is ``min(t_i - reaction_time, D_nat)`` (an early arm waits rather than
 moving slower than a human would), or longer where the velocity or torque limits ask for it
 (`online` time scaling: the latest start that still ends at ``t_i``); a motion that would have to
 start before the reaction time to stay within them is no catch (``motion.within_time`` False).
+The search is staged so that one ball plans in a few milliseconds: every sample gets its nearest
+database condition (one distance matrix), the `REGION_SAMPLES` most promising by that get the
+neighbour search, and the `CANDIDATES` best of those the IK. `catch_query` generates the motion
+of the best catch and, only when that motion is not usable (mostly: too fast for the limits),
+those of `MOTION_OPTIONS` - 1 further ones, the latest catches first (the most time for the
+arm), and keeps the best usable one.
+
+The palm (`online.palm`: `palm_normal`, `catch_posture`). A hand catches with its palm: a
+ball arriving at the back of the hand or at the fingertips bounces off (docs/simulation.md
+measured this: with the position-only posture the palm faced away from the incoming ball in
+most throws). Where the end-effector site lies on a surface of the hand's geometry, its outward
+normal is the palm's, and the catch posture puts the point one ball radius in front of the palm
+(``site + r n``) at the catch point, turning the palm toward the incoming ball in the null space
+of that, then toward the human-like posture. The ball's centre then reaches the catch point as
+its surface touches the palm at the site. The turn is added to the interpolated motion as a
+rest-to-rest minimum-jerk offset (`generation.finish_motion`'s
+``final_shift``), so the path stays the neighbours' interpolation plus a smooth turn.
 
 A ball that offers no such sample cannot be caught; the plan says why, with the distance from the
 ball's path to the reachable region and the time missing.
@@ -45,9 +62,14 @@ from evojax_motion.motion.database import Database
 from evojax_motion.motion.timegrid import TimeGrid
 from evojax_motion.online.generation import OnlineResult, build_problem, finish_motion
 from evojax_motion.online.limits import joint_limits_f32
-from evojax_motion.online.reach import reach_query, resolve_settings
+from evojax_motion.online.palm import catch_posture, palm_normal
+from evojax_motion.online.reach import final_posture, region_query, resolve_settings
 from evojax_motion.settings.compiler import BasisSettings
-from evojax_motion.settings.online import CatchSettings, OnlineSettings
+from evojax_motion.settings.online import BALL_RADIUS, CatchSettings, OnlineSettings
+
+REGION_SAMPLES = 32  # samples of the ball's path that get the neighbour search (`plan_catch`)
+CANDIDATES = 16  # of those, samples that get the IK
+MOTION_OPTIONS = 4  # catches of a ball whose motions are generated; the best usable one wins
 
 
 class CatchPlan(NamedTuple):
@@ -86,6 +108,7 @@ class CatchPlan(NamedTuple):
     natural_duration: jnp.ndarray
     ball: jnp.ndarray
     times: jnp.ndarray
+    palm_facing: jnp.ndarray
 
 
 def ball_flight(p0, v0, times, gravity, drag: float, substeps: int):
@@ -133,8 +156,13 @@ def plan_catch(
     db: Database,
     p0,
     v0,
+    options: int = 1,
 ) -> CatchPlan:
-    """Choose the catch of each ball ``p0, v0 (B, 3)`` (module docstring). Pure, jittable."""
+    """Choose the catch of each ball ``p0, v0 (B, 3)`` (module docstring). Pure, jittable.
+
+    ``options`` > 1: the ``options`` best catches of each ball, best first, as a plan of
+    ``B * options`` rows (ball-major; a row with ``feasible`` False where a ball has fewer).
+    """
     dtype = jnp.asarray(db.q).dtype
     p0, v0 = jnp.asarray(p0, dtype), jnp.asarray(v0, dtype)
     b, s = p0.shape[0], catch.samples
@@ -143,51 +171,121 @@ def plan_catch(
         ball_flight, times=times, gravity=gravity, drag=catch.drag, substeps=catch.substeps
     )
     pos, vel = jax.vmap(flight)(p0, v0)  # (B, S, 3)
-    reach, _ = reach_query(dyn, db, pos.reshape(b * s, 3), lower, upper, basis_settings, settings)
-    depth = reach.depth.reshape(b, s)
-    ik_error = reach.ik_error.reshape(b, s)
-    reachable = reach.reachable.reshape(b, s)
-    d_nat = reach.natural_duration.reshape(b, s)
     # The ball is lost once it has touched the floor (no bounces).
     alive = jnp.cumprod(pos[..., 2] >= 0.0, axis=1).astype(bool)
     available = times[None, :] - catch.reaction_time
-    margin = available - d_nat / catch.speedup
-    ok = alive & reachable & (margin >= 0.0) & jnp.isfinite(margin)
+    # Stage 0, every sample: the nearest valid condition (a lower bound of the region's gap)
+    # and a guess of the score with the database's mean duration; the REGION_SAMPLES best go on.
+    cond, valid = jnp.asarray(db.condition, dtype), jnp.asarray(db.valid)
+    # |p - c|^2 by one matrix product (a few mm of rounding at the radius: only a ranking here)
+    d2 = (
+        jnp.sum(pos**2, axis=-1)[..., None]
+        + jnp.sum(cond**2, axis=-1)
+        - 2.0 * jnp.einsum("bsk,nk->bsn", pos, cond)
+    )  # (B, S, N)
+    nearest = jnp.sqrt(jnp.maximum(jnp.min(jnp.where(valid, d2, jnp.inf), axis=-1), 0.0))
+    gap0 = jnp.maximum(nearest - basis_settings.radius, 0.0)
+    mean_duration = jnp.sum(jnp.where(valid, db.duration, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
+    guess = jnp.minimum(
+        (available - mean_duration / catch.speedup) / catch.time_scale,
+        (basis_settings.radius - nearest) / catch.space_scale,
+    )
+    key0 = jnp.where(gap0 <= 0.0, guess, -1e9 - jnp.minimum(gap0, 1e3))
+    r = min(REGION_SAMPLES, s)
+    _, sub = jax.lax.top_k(jnp.where(alive, key0, -jnp.inf), r)  # (B, R) sample indices
+
+    def of_sub(a):  # (B, S, ...) -> (B, R, ...)
+        return jnp.take_along_axis(a, sub.reshape(sub.shape + (1,) * (a.ndim - 2)), axis=1)
+
+    # Stage 1 (the learned region, the natural duration) at those samples.
+    depth, region_gap, d_nat, _, nb = region_query(
+        db, of_sub(pos).reshape(b * r, 3), basis_settings, settings
+    )
+    depth, region_gap, d_nat = (x.reshape(b, r) for x in (depth, region_gap, d_nat))
+    alive_r, t_r = of_sub(alive), times[sub]
+    available_r = t_r - catch.reaction_time
+    margin = available_r - d_nat / catch.speedup
+    inside = alive_r & (region_gap <= 0.0)
+    timely = inside & (margin >= 0.0) & jnp.isfinite(margin)
     score = jnp.minimum(margin / catch.time_scale, depth / catch.space_scale)
-    score = jnp.where(ok, score, -jnp.inf)
-    idx = jnp.argmax(score, axis=1)
-    feasible = jnp.any(ok, axis=1)
+    # Stage 2 (the IK) only at the CANDIDATES best of them: in time and inside the region by
+    # score, then inside but late by time margin, then the rest by their gap to the region.
+    key = jnp.where(
+        timely,
+        score,
+        jnp.where(inside, -1e6 + jnp.clip(margin, -1e3, 0.0), -1e9 - jnp.minimum(region_gap, 1e3)),
+    )
+    m = min(CANDIDATES, r)
+    _, cand = jax.lax.top_k(jnp.where(alive_r, key, -jnp.inf), m)  # (B, M) indices into R
+    flat = (jnp.arange(b)[:, None] * r + cand).reshape(-1)
+    nb_c = jax.tree_util.tree_map(lambda x: x[flat], nb)
+    points = of_sub(pos).reshape(b * r, 3)[flat]
+    ik_error = final_posture(dyn, db, points, nb_c, lower, upper, settings).pos_error
+    ik_error = ik_error.reshape(b, m)
 
-    def at(a):
-        return jnp.take_along_axis(a, idx[:, None], axis=1)[:, 0]
+    def cand_of(a):
+        return jnp.take_along_axis(a, cand, axis=1)
 
-    t_c = times[idx]
-    duration = jnp.minimum(at(available), at(d_nat))
-    # Why not: the path's closest approach to the reachable set, and the time short there.
-    gap = jnp.where(alive, jnp.maximum(jnp.maximum(-depth, 0.0), ik_error), jnp.inf)
+    reach_c = cand_of(inside) & (ik_error <= settings.reach_tolerance)
+    ok_c = reach_c & cand_of(timely)
+    score_c = jnp.where(ok_c, cand_of(score), -jnp.inf)
+    sample_c = jnp.take_along_axis(sub, cand, axis=1)  # (B, M) sample indices
+    k = min(options, m)
+    # Options: the best score first, then the latest catches (the most time for the arm).
+    first = jnp.argmax(score_c, axis=1)
+    later = jnp.where(ok_c, sample_c.astype(dtype), -jnp.inf)
+    later = later.at[jnp.arange(b), first].set(jnp.inf)
+    _, best = jax.lax.top_k(later, k)  # (B, K) indices into M
+    feasible = jnp.take_along_axis(ok_c, best, axis=1)
+    pick = jnp.where(feasible, best, 0)
+
+    def at(a):  # (B, M) -> (B * K,) at the options
+        return jnp.take_along_axis(a, pick, axis=1).reshape(-1)
+
+    idx = jnp.where(feasible.reshape(-1), at(sample_c), 0)
+    # Why not: the path's closest approach to the reachable set (the region's gap; the IK's miss
+    # too at the candidates; the nearest condition's gap elsewhere, a lower bound), and the time
+    # short at the reachable candidate latest to be late.
+    rows = jnp.arange(b)[:, None]
+    gap = gap0.at[rows, sub].set(region_gap)
+    gap = gap.at[rows, sample_c].max(ik_error)
+    gap = jnp.where(alive, gap, jnp.inf)
     closest = jnp.argmin(gap, axis=1)
-    short = jnp.where(alive & reachable & jnp.isfinite(margin), -margin, jnp.inf)
+    short = jnp.where(reach_c & jnp.isfinite(cand_of(margin)), -cand_of(margin), jnp.inf)
+    late = jnp.take_along_axis(sample_c, jnp.argmin(short, axis=1)[:, None], axis=1)[:, 0]
     time_short = jnp.min(short, axis=1)
+    natural = jnp.full((b, s), jnp.nan, dtype).at[rows, sub].set(d_nat)
+    t_c = times[idx]
+    duration = jnp.minimum(t_c - catch.reaction_time, at(cand_of(d_nat)))
+    feasible = feasible.reshape(-1)
+
+    def per_option(a):  # (B, ...) -> (B * K, ...)
+        return jnp.repeat(a, k, axis=0)
+
+    b_rows = jnp.arange(b * k)
     return CatchPlan(
         feasible=feasible,
         sample=jnp.where(feasible, idx, -1).astype(jnp.int32),
         catch_time=t_c,
-        catch_point=jnp.take_along_axis(pos, idx[:, None, None], axis=1)[:, 0],
-        ball_velocity=jnp.take_along_axis(vel, idx[:, None, None], axis=1)[:, 0],
+        catch_point=per_option(pos)[b_rows, idx],
+        ball_velocity=per_option(vel)[b_rows, idx],
         duration=duration,
         start_time=t_c - duration,
-        time_margin=at(margin),
-        depth=at(depth),
-        score=at(score),
-        closest_gap=jnp.take_along_axis(gap, closest[:, None], axis=1)[:, 0],
-        closest_time=times[closest],
-        passes_region=jnp.any(alive & reachable, axis=1),
-        time_short=jnp.where(jnp.isfinite(time_short), jnp.maximum(time_short, 0.0), 0.0),
-        closest_index=closest.astype(jnp.int32),
-        late_index=jnp.argmin(short, axis=1).astype(jnp.int32),
-        natural_duration=d_nat,
-        ball=pos,
-        times=jnp.broadcast_to(times, (b, s)),
+        time_margin=at(cand_of(margin)),
+        depth=at(cand_of(depth)),
+        score=jnp.where(feasible, at(score_c), -jnp.inf),
+        closest_gap=per_option(jnp.take_along_axis(gap, closest[:, None], axis=1)[:, 0]),
+        closest_time=per_option(times[closest]),
+        passes_region=per_option(jnp.any(reach_c, axis=1)),
+        time_short=per_option(
+            jnp.where(jnp.isfinite(time_short), jnp.maximum(time_short, 0.0), 0.0)
+        ),
+        closest_index=per_option(closest.astype(jnp.int32)),
+        late_index=per_option(late.astype(jnp.int32)),
+        natural_duration=per_option(natural),
+        ball=per_option(pos),
+        times=jnp.broadcast_to(times, (b * k, s)),
+        palm_facing=jnp.full(b * k, jnp.nan, dtype),
     )
 
 
@@ -214,18 +312,72 @@ def catch_query(
     p0,
     v0,
     q_start,
+    palm=None,
 ) -> Catch:
     """Plan the catch of balls ``p0, v0 (B, 3)`` and generate the arms' motions from
     ``q_start (B, J)``. Pure (jit it at the top)."""
     lower = jnp.asarray(lower, jnp.asarray(db.q).dtype)
     upper = jnp.asarray(upper, lower.dtype)
-    plan = plan_catch(dyn, lower, upper, gravity, basis_settings, settings, catch, db, p0, v0)
+    b = jnp.shape(p0)[0]
+    plan = plan_catch(
+        dyn, lower, upper, gravity, basis_settings, settings, catch, db, p0, v0,
+        options=MOTION_OPTIONS,
+    )  # fmt: skip
+    k = plan.feasible.shape[0] // b  # fewer options where the path has fewer candidates
+    q_start = jnp.asarray(q_start)
+    motions = functools.partial(
+        _catch_motions, dyn, grid, lower, upper, basis_settings, settings, catch, db, palm
+    )
+    options = plan.feasible.reshape(b, k)
+
+    def option(i):  # the motions of every ball's option i
+        return motions(jax.tree_util.tree_map(lambda a: a[jnp.arange(b) * k + i], plan), q_start)
+
+    def more(state):  # another option is left for a ball whose motion is not usable yet
+        i, best = state
+        waiting = ~best.motion.ok & jnp.any(options & (jnp.arange(k) >= i), axis=1)
+        return (i == 0) | ((i < k) & jnp.any(waiting))
+
+    def next_option(state):
+        i, best = state
+        new = option(i)
+        take = (i == 0) | (~best.motion.ok & new.motion.ok)  # (B,)
+
+        def choose(x, y):
+            return jnp.where(take.reshape(take.shape + (1,) * (x.ndim - 1)), x, y)
+
+        return i + 1, jax.tree_util.tree_map(choose, new, best)
+
+    # One option after the other (one compiled motion generation): most balls' best option is
+    # usable and costs one; the others only while a ball has no usable motion yet.
+    shapes = jax.eval_shape(option, 0)
+    empty = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+    return jax.lax.while_loop(more, next_option, (jnp.asarray(0), empty))[1]
+
+
+def _catch_motions(
+    dyn, grid, lower, upper, basis_settings, settings, catch, db, palm, plan: CatchPlan, q_start
+) -> Catch:
+    """The motions of the catches ``plan`` (one per row) from ``q_start`` (`catch_query`)."""
     basis, boundary, reach = build_problem(
         dyn, db, plan.catch_point, plan.duration, q_start, lower, upper, basis_settings, settings
     )
+    target = plan.catch_point
+    if palm is not None:  # the palm faces the ball and holds it: `catch_posture`
+        speed = jnp.linalg.norm(plan.ball_velocity, axis=1, keepdims=True)
+        facing = -plan.ball_velocity / jnp.maximum(speed, 1e-9)
+        qf, target, cosine = catch_posture(
+            dyn, reach.q_final, reach.q_final, plan.catch_point, facing, palm, BALL_RADIUS,
+            lower, upper,
+        )  # fmt: skip
+        shift = qf - reach.q_final
+        reach = reach._replace(q_final=qf)
+        plan = plan._replace(palm_facing=cosine)
+    else:
+        shift = None
     available = plan.catch_time - catch.reaction_time
     motion = finish_motion(
-        dyn, grid, lower, upper, settings, basis, boundary, reach, plan.catch_point, available
+        dyn, grid, lower, upper, settings, basis, boundary, reach, target, available, shift
     )
     # Time scaling may have slowed the motion down: it starts earlier, still ending at the catch.
     start = plan.catch_time - motion.duration
@@ -248,8 +400,9 @@ def make_catcher(
     )
     dyn, options = unfused_cpu_program(dyn)  # as `online.generation.make_online_generator`
     fn = functools.partial(
-        catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch
-    )
+        catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch,
+        palm=palm_normal(robot),
+    )  # fmt: skip
     return jax.jit(exact_matmuls(fn), compiler_options=options)
 
 

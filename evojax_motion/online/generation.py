@@ -55,7 +55,9 @@ from evojax_motion.motion.timegrid import TimeGrid, derivatives
 from evojax_motion.online.limits import (
     VELOCITY,
     enforce_limits,
+    fit_speed,
     joint_limits_f32,
+    minimum_jerk,
     peak_margin,
     shortest_duration,
     time_law,
@@ -163,21 +165,29 @@ def finish_motion(
     reach: Reach,
     targets,
     max_duration=None,
+    final_shift=None,
 ) -> OnlineResult:
     """Steps 3-6: interpolation (eq. 1-2), joint limits, derivatives, torques, time scaling.
 
     ``max_duration (C,)`` [s]: the time allowed (None: `MAX_DURATION`); a motion that needs
     longer to stay within the velocity and torque limits of ``dyn.robot`` is returned at
-    ``max_duration`` with ``ok`` False. Pure.
+    ``max_duration`` with ``ok`` False. ``final_shift (C, J)`` [rad]: a change of the final
+    posture added to the interpolated path as a rest-to-rest minimum-jerk offset (a catch turns
+    the palm toward the ball, `catching.catch_posture`); None: none. Pure.
     """
-    interp = compile_interpolation(basis, boundary, grid, settings.n_components)
-    q, excess, fallback = enforce_limits(basis, boundary, grid, interp.q, lower, upper, settings)
+    q = compile_interpolation(basis, boundary, grid, settings.n_components).q
+    if final_shift is not None:
+        q = q + minimum_jerk(grid, jnp.zeros_like(final_shift), final_shift)
+        boundary = boundary._replace(qf=boundary.qf + final_shift)
+    q, excess, fallback = enforce_limits(basis, boundary, grid, q, lower, upper, settings)
     asked = boundary.duration
     top = jnp.full_like(asked, MAX_DURATION) if max_duration is None else max_duration
     top = jnp.asarray(top, q.dtype)
     vel_lim, tau_lim, vel_use, tau_use = (
         jnp.asarray(a, q.dtype) for a in usable_limits(dyn.robot, settings)
     )
+    if max_duration is not None:  # a deadline: joints too fast for it straighten (`fit_speed`)
+        q = fit_speed(grid, q, boundary.q0, boundary.qf, jnp.maximum(top, asked), vel_use)[0]
     inv = jax.vmap(jax.vmap(dyn.inverse))
 
     def usage(qd, tau):  # (C, T, J): share of the usable limit, torque and velocity

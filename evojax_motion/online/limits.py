@@ -33,7 +33,8 @@ limit_headroom``, the authority left to a feedback controller): a log-spaced sca
 arrives) and its velocities and torques at that D (the polynomial: the inverse dynamics there,
 up to rounding) are within the full limits.
 Otherwise the result says which limit binds: joint, value needed, at what time (``worst_*``);
-e.g. gravity alone over a torque limit fails at any D.
+e.g. gravity alone over a torque limit fails at any D. A motion with a deadline (a catch) first
+blends each joint too fast for it toward its minimum-jerk path (`fit_speed`).
 """
 
 from __future__ import annotations
@@ -231,3 +232,26 @@ def usable_limits(robot: Robot, settings: OnlineSettings, dtype=np.float32):
 def peak_margin(peak, limit):
     """``min_j 1 - peak_j / limit_j`` over ``peak (C, J)``; 1 where no joint has a limit."""
     return jnp.min(jnp.where(jnp.isfinite(limit), 1.0 - peak / limit, 1.0), axis=1)
+
+
+SPEED_BLENDS = (0.0, 0.25, 0.5, 0.75, 1.0)  # `fit_speed`'s candidate weights of minimum jerk
+
+
+def fit_speed(grid: TimeGrid, q, q0, qf, duration, vel_usable):
+    """Paths ``q (C, T, J)`` whose joints would be too fast at ``duration (C,)`` blended, per
+    joint, toward the rest-to-rest minimum-jerk path ``q0 -> qf (C, J)``: the smallest weight
+    of `SPEED_BLENDS` with ``|qd| <= vel_usable (J,)`` at that duration, else 1. A joint fast
+    enough keeps its path exactly; every blend keeps the BCs and stays inside any box holding
+    both paths. Returns ``(q, weights (C, J))``.
+    """
+    safe = minimum_jerk(grid, q0, qf)
+    ones = jnp.ones(q.shape[0], q.dtype)
+
+    def peak(lam):  # (C, J) largest speed of the blend at the duration
+        qd = derivatives(grid, (1.0 - lam) * q + lam * safe, ones)[0]
+        return jnp.max(jnp.abs(qd), axis=1) / duration[:, None]
+
+    fits = jnp.stack([peak(lam) <= vel_usable for lam in SPEED_BLENDS])  # (L, C, J)
+    first = jnp.where(jnp.any(fits, axis=0), jnp.argmax(fits, axis=0), len(SPEED_BLENDS) - 1)
+    lam = jnp.asarray(SPEED_BLENDS, q.dtype)[first][:, None, :]  # (C, 1, J)
+    return jnp.where(lam > 0, (1.0 - lam) * q + lam * safe, q), lam[:, 0]

@@ -52,19 +52,11 @@ class Reach(NamedTuple):
     reachable: jnp.ndarray
 
 
-def reach_query(
-    dyn: Dynamics,
-    db: Database,
-    points,
-    lower,
-    upper,
-    basis_settings: BasisSettings,
-    settings: OnlineSettings,
-):
-    """Steps 1-2 for ``points (P, 3)``: neighbours and the final posture. Pure, jittable.
+def region_query(db: Database, points, basis_settings: BasisSettings, settings: OnlineSettings):
+    """Step 1 for ``points (P, 3)``: the neighbours and the learned region, without the IK.
 
-    ``db`` needs ``q (N, T, J)``, ``duration``, ``condition``, ``valid``. Returns
-    ``(Reach, Neighbours)``.
+    Returns ``(depth, region_gap, natural_duration, n_inside, neighbours)`` (`Reach`'s fields
+    of those names, ``(P,)``; the `Neighbours` the motion is built on). Pure, jittable.
     """
     q_db = jnp.asarray(db.q)
     points = jnp.asarray(points, q_db.dtype)
@@ -85,10 +77,25 @@ def reach_query(
             evolved,
             region,
         )
+    # The learned region: >= min_neighbours primitives within the radius. d_m is 1-Lipschitz in
+    # the point, so the gap is a lower bound of the distance to the region (exact near a cluster).
+    kth = region.distance[:, settings.min_neighbours - 1] / basis_settings.w_pos
+    depth = jnp.where(jnp.isfinite(kth), basis_settings.radius - kth, -jnp.inf)
+    gap = jnp.maximum(-depth, 0.0)
+    dur = masked_row_mean(jnp.asarray(db.duration, q_db.dtype)[nb.index], nb.mask)
+    natural = jnp.where(jnp.any(nb.mask, axis=1), dur, jnp.nan)
+    return depth, gap, natural, region.n_inside, nb
+
+
+def final_posture(dyn: Dynamics, db: Database, points, nb, lower, upper, settings: OnlineSettings):
+    """Step 2 for ``points (P, 3)`` and their neighbours ``nb``: the human-like IK from the
+    nearest neighbour's final posture, pulled toward the neighbours' mean final posture
+    (`model.ik.IKResult`). Pure, jittable."""
+    q_db = jnp.asarray(db.q)
     final = q_db[nb.index, -1]  # (P, k, J) the neighbours' final postures
-    ik = solve_ik(
+    return solve_ik(
         dyn,
-        points,
+        jnp.asarray(points, q_db.dtype),
         final[:, 0],
         lower,
         upper,
@@ -96,20 +103,32 @@ def reach_query(
         iters=settings.ik_iters,
         tol=settings.reach_tolerance,
     )
-    # The learned region: >= min_neighbours primitives within the radius. d_m is 1-Lipschitz in
-    # the point, so the gap is a lower bound of the distance to the region (exact near a cluster).
-    kth = region.distance[:, settings.min_neighbours - 1] / basis_settings.w_pos
-    depth = jnp.where(jnp.isfinite(kth), basis_settings.radius - kth, -jnp.inf)
-    gap = jnp.maximum(-depth, 0.0)
-    dur = masked_row_mean(jnp.asarray(db.duration, q_db.dtype)[nb.index], nb.mask)
+
+
+def reach_query(
+    dyn: Dynamics,
+    db: Database,
+    points,
+    lower,
+    upper,
+    basis_settings: BasisSettings,
+    settings: OnlineSettings,
+):
+    """Steps 1-2 for ``points (P, 3)``: neighbours and the final posture. Pure, jittable.
+
+    ``db`` needs ``q (N, T, J)``, ``duration``, ``condition``, ``valid``. Returns
+    ``(Reach, Neighbours)``.
+    """
+    depth, gap, natural, n_inside, nb = region_query(db, points, basis_settings, settings)
+    ik = final_posture(dyn, db, points, nb, lower, upper, settings)
     reach = Reach(
         depth=depth,
         region_gap=gap,
         ik_error=ik.pos_error,
         q_final=ik.q,
         hand=jax.vmap(lambda q: dyn.site_pose(q)[0])(ik.q),
-        natural_duration=jnp.where(jnp.any(nb.mask, axis=1), dur, jnp.nan),
-        n_inside=region.n_inside,
+        natural_duration=natural,
+        n_inside=n_inside,
         reachable=(gap <= 0.0) & (ik.pos_error <= settings.reach_tolerance),
     )
     return reach, nb

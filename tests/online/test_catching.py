@@ -16,18 +16,17 @@ from online_support import (
 )
 
 from evojax_motion.errors import UserError
-from evojax_motion.online.catching import (
-    ball_flight,
-    explain_plan,
-    validate_ball,
-)
+from evojax_motion.model.robot import robot_from_mjcf_text
+from evojax_motion.online.catching import ball_flight, explain_plan, validate_ball
 from evojax_motion.online.generation import final_hand
-from evojax_motion.settings.online import CatchSettings
+from evojax_motion.online.palm import palm_normal
+from evojax_motion.settings.online import BALL_RADIUS, CatchSettings
 
 TOL_FLIGHT = 1e-4  # m: float32 ballistic positions over 1.5 s (|p| ~ 3 m)
 TOL_DRAG = 1e-4  # m: RK4 (4 substeps of 10 ms) vs SciPy's DOP853 at 1e-10
 TOL_HAND = 1e-3  # m: hand at the catch point at the end of the motion
 TOL_CLI_HAND = 5e-3  # m: the catch command's default --tolerance (5 mm)
+PALM_FACING_MIN = 0.5  # cosine of the palm normal and the incoming ball: the palm side
 GRAVITY = np.array([0.0, 0.0, -9.81], np.float32)
 
 
@@ -99,6 +98,25 @@ def test_catchable_ball_is_caught_in_time_at_the_point():
     lo, hi = env.robot.lower, env.robot.upper
     assert ((motion.q[0] >= lo) & (motion.q[0] <= hi)).all()
     assert "catch at t =" in explain_plan(plan, 0)
+    # the palm faces the incoming ball, its centre one ball radius short of the catch point
+    pos, rot = (np.asarray(a) for a in env.dyn.site_pose(motion.q[0, -1]))
+    normal = rot @ palm_normal(env.robot)
+    incoming = -plan.ball_velocity[0] / np.linalg.norm(plan.ball_velocity[0])
+    assert normal @ incoming >= PALM_FACING_MIN
+    np.testing.assert_allclose(plan.palm_facing[0], normal @ incoming, atol=1e-4)
+    np.testing.assert_allclose(pos + BALL_RADIUS * normal, plan.catch_point[0], atol=TOL_HAND)
+
+
+def test_palm_normal_is_the_palm_face_of_the_hand():
+    """mahru_arm's site is the centre of the palm face (+y) of its hand box; a site off every
+    geom surface has none."""
+    env = online_env()
+    np.testing.assert_allclose(palm_normal(env.robot), [0.0, 1.0, 0.0], atol=1e-6)
+    xml = env.robot.mjcf.replace('<site name="hand" pos="0 0.015 -0.06"/>',
+                                 '<site name="hand" pos="0 0.1 -0.06"/>')  # fmt: skip
+    assert xml != env.robot.mjcf
+    off = robot_from_mjcf_text("off", xml, env.robot.joint_names, env.robot.site_name)
+    assert palm_normal(off) is None
 
 
 def test_uncatchable_balls_say_why():
@@ -149,7 +167,8 @@ def test_cli_catch(tmp_path, capsys, monkeypatch):
     assert abs(float(data.t[-1]) - t_c) <= 1e-4
     ball_at = p0 + v0 * t_c + 0.5 * GRAVITY * t_c**2
     hand = final_hand(env.robot, data.q[-1:])[0]
-    assert np.linalg.norm(hand - ball_at) <= TOL_CLI_HAND
+    # the palm's centre one ball radius short of the ball's: the ball touches the palm there
+    assert abs(np.linalg.norm(hand - ball_at) - BALL_RADIUS) <= TOL_CLI_HAND
     tight = tmp_path / "tight.npz"
     argv = ["catch", "--db", str(db), "--ball", *ball, "--out", str(tight), *horizon]
     assert run_cli([*argv, "--tolerance", "1e-6"]) == 2
@@ -167,3 +186,26 @@ def test_cli_catch(tmp_path, capsys, monkeypatch):
     msg = capsys.readouterr().out
     assert msg.startswith("note: the ball cannot be caught") and "moving to the reachable" in msg
     assert read_trajectory(out2).q.shape == data.q.shape
+
+
+def test_fit_speed_straightens_only_the_joints_too_fast():
+    """A deadline: the joint whose path is too fast blends toward minimum jerk until it fits; a
+    joint fast enough keeps its path bit for bit; the BCs stay."""
+    from evojax_motion.motion.timegrid import derivatives, make_time_grid
+    from evojax_motion.online.limits import fit_speed, minimum_jerk
+
+    grid = make_time_grid(100)
+    q0, qf = np.zeros((1, 2), np.float32), np.array([[1.0, 1.0]], np.float32)
+    smooth = np.asarray(minimum_jerk(grid, q0, qf))
+    s = np.asarray(grid.s, np.float32)[None, :, None]
+    wiggle = smooth + 0.3 * np.sin(2 * np.pi * 3 * s) * np.sin(np.pi * s) ** 3  # fast joint
+    q = np.concatenate([wiggle[..., :1], smooth[..., 1:]], axis=2)
+    duration = np.array([1.0], np.float32)
+    limit = np.array([3.0, 3.0], np.float32)  # minimum jerk peaks at 1.875 rad/s
+    before = np.abs(np.asarray(derivatives(grid, q, duration)[0])).max(axis=1)[0]
+    assert before[0] > limit[0] >= before[1]
+    out, lam = (np.asarray(a) for a in fit_speed(grid, q, q0, qf, duration, limit))
+    after = np.abs(np.asarray(derivatives(grid, out, duration)[0])).max(axis=1)[0]
+    assert 0 < lam[0, 0] < 1 and lam[0, 1] == 0 and (after <= limit).all()
+    np.testing.assert_array_equal(out[..., 1], q[..., 1])
+    np.testing.assert_allclose(out[0, [0, -1]], np.r_[q0, qf], atol=1e-6)
