@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import sys
 import time
@@ -61,6 +62,8 @@ from evojax_motion.online.simulate import (  # noqa: E402
     simulate,
     summarise,
 )
+from evojax_motion.report.run_folder import CATCH_FILE  # noqa: E402
+from evojax_motion.run.atomic import atomic_write_text  # noqa: E402
 from evojax_motion.settings.online import CatchSettings, SimSettings  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -311,6 +314,8 @@ def main(argv=None) -> dict:
     write_result(
         Path(args.out_dir) / f"catch_success_{args.tag or m['platform']}", result, markdown(result)
     )
+    # beside the run too, for its report (`evojax-motion report RUN`: catches per database)
+    atomic_write_text(run_dir / CATCH_FILE, json.dumps(result, indent=2) + "\n")
     return result
 
 

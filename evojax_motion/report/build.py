@@ -58,9 +58,16 @@ from evojax_motion.report.condition import (
     motion_cost,
     optimise,
 )
-from evojax_motion.report.figures import FIGURES, plot_basis, plot_tradeoff, snapshot_figure
+from evojax_motion.report.figures import (
+    CATCH_FIGURE,
+    FIGURES,
+    plot_basis,
+    plot_catch_success,
+    plot_tradeoff,
+    snapshot_figure,
+)
 from evojax_motion.report.html import write_html
-from evojax_motion.report.run_folder import RUN_FILES, load_run
+from evojax_motion.report.run_folder import CATCH_FILE, RUN_FILES, load_run
 
 REPORT_DIR = "report"
 GIF_SPEED = 0.5  # playback speed of catch.gif (half speed)
@@ -182,6 +189,13 @@ def make_report(
     if not blocked("tradeoff.png"):
         trade = plot_tradeoff(data.metrics or [], out / "tradeoff.png", baseline=data.summary)
         wrote("tradeoff.png", trade)
+    if data.catch is not None:
+        wrote(CATCH_FIGURE, plot_catch_success(data.catch, out / CATCH_FIGURE))
+    elif CATCH_FILE not in rep.problems:
+        rep.notes.append(
+            f"no {CATCH_FILE}: `python benchmarks/catch_success.py --train-dir "
+            f"{data.run_dir}` adds catches in physics per database"
+        )
 
     if ctx is not None:
         _condition_figures(

@@ -76,6 +76,42 @@ FIGURES: dict[str, tuple[str, tuple[str, ...], str]] = {
 }
 
 
+# the optional catch figure: drawn where the run folder holds `run_folder.CATCH_FILE`
+CATCH_FIGURE = "catch_success.png"
+CATCH_TITLE = "Catches in physics, per database"
+CATCH_CAPTION = (
+    "benchmarks/catch_success.py on this run: random throws planned online and executed in "
+    "MuJoCo by the tracking controller (docs/simulation.md). Left: caught / reachable throws; "
+    "right: eq. 5 cost of the planned motions (median, bar; mean, dot) [N^2 m^2 s]."
+)
+
+
+def plot_catch_success(result: dict, path: Path) -> Path:
+    """Catch success and eq. 5 cost side by side for each database of a catch_success result."""
+    import matplotlib.pyplot as plt
+
+    names = list(result["databases"])
+    rows = [result["databases"][n] for n in names]
+    rate = [100.0 * r["caught"] / max(r["reachable"], 1) for r in rows]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.4))
+    bars = left.bar(names, rate, color="tab:blue")
+    for bar, r in zip(bars, rows, strict=True):
+        left.annotate(
+            f"{r['caught']} / {r['reachable']}",
+            (bar.get_x() + bar.get_width() / 2, bar.get_height()),
+            ha="center",
+            va="bottom",
+            fontsize=8,
+        )
+    left.set(ylabel="caught [% of reachable throws]", ylim=(0, 105))
+    right.bar(names, [r["cost"]["median"] for r in rows], color="tab:red", alpha=0.7)
+    right.plot(names, [r["cost"]["mean"] for r in rows], "ko", label="mean")
+    right.set(ylabel="eq. 5 cost [N^2 m^2 s]")
+    right.legend(fontsize=8)
+    fig.suptitle(f"{result.get('throws', '?')} throws")
+    return _save(fig, path)
+
+
 def _save(fig, path: Path) -> Path:
     from evojax_motion.report.plots import save_figure
 

@@ -7,7 +7,7 @@ import html
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from evojax_motion.report.figures import FIGURES
+from evojax_motion.report.figures import CATCH_CAPTION, CATCH_FIGURE, CATCH_TITLE, FIGURES
 from evojax_motion.report.run_folder import RunData
 
 if TYPE_CHECKING:
@@ -86,5 +86,8 @@ def write_html(rep: Report, data: RunData) -> Path:
             )
         else:
             parts.append(f"<p class='note'>not made: {esc(rep.skipped.get(name, '?'))}</p>")
+    if CATCH_FIGURE in rep.figures:  # optional (`report.run_folder.CATCH_FILE`)
+        parts.append(f"<h2>{esc(CATCH_TITLE)}</h2><p>{esc(CATCH_CAPTION)}</p>")
+        parts.append(f"<img alt='{CATCH_FIGURE}' src='{_data_uri(rep.figures[CATCH_FIGURE])}'>")
     parts.append("</body></html>\n")
     return atomic_write_text(rep.out_dir / HTML_FILE, "\n".join(parts))

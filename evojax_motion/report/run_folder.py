@@ -14,6 +14,8 @@ from evojax_motion.errors import UserError
 CONFIG_FILE, METRICS_FILE, SUMMARY_FILE = "config.yaml", "metrics.jsonl", "summary.json"
 DB_INITIAL, DB_GEN1, DB_FINAL = "db_initial.npz", "db_gen1.npz", "db_final.npz"
 RUN_FILES = (CONFIG_FILE, METRICS_FILE, DB_INITIAL, DB_GEN1, DB_FINAL)
+# optional: written by `benchmarks/catch_success.py --train-dir RUN` (catches in physics)
+CATCH_FILE = "catch_success.json"
 
 
 class RunData(NamedTuple):
@@ -27,6 +29,27 @@ class RunData(NamedTuple):
     db_gen1: Any
     db_final: Any
     problems: dict[str, str]  # file name -> what is wrong
+    catch: dict | None = None  # CATCH_FILE, where the catch benchmark ran on this run
+
+
+def _read_catch(path: Path) -> dict:
+    """CATCH_FILE: per database, ``caught`` of ``reachable`` throws and the motions' eq. 5 cost."""
+    try:
+        result = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise UserError(f"{path}: not JSON ({e.msg})") from None
+    dbs = result.get("databases") if isinstance(result, dict) else None
+    keys = ("caught", "reachable", "cost")
+    if (
+        not isinstance(dbs, dict)
+        or not dbs
+        or not all(isinstance(r, dict) and all(k in r for k in keys) for r in dbs.values())
+    ):
+        raise UserError(
+            f"{path}: expected {{'databases': {{name: {{{', '.join(keys)}, ...}}}}}} "
+            "as benchmarks/catch_success.py writes it"
+        )
+    return result
 
 
 def _read_metrics(path: Path) -> list[dict]:
@@ -83,6 +106,7 @@ def load_run(run_dir: str | Path) -> RunData:
             summary = json.loads((run / SUMMARY_FILE).read_text())
         except (OSError, json.JSONDecodeError):
             summary = None
+    catch = attempt(CATCH_FILE, _read_catch) if (run / CATCH_FILE).is_file() else None
     return RunData(
         run_dir=run,
         config=attempt(CONFIG_FILE, load_config),
@@ -92,4 +116,5 @@ def load_run(run_dir: str | Path) -> RunData:
         db_gen1=attempt(DB_GEN1, load_database),
         db_final=attempt(DB_FINAL, load_database),
         problems=problems,
+        catch=catch,
     )

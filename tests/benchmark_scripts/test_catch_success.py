@@ -75,3 +75,27 @@ def test_counts_add_up_and_the_report_renders(tiny_result, tmp_path):
     page = make_report.render(tmp_path)
     assert "Catch success in physics" in page
     assert "`catch_success_test.json`" in page
+
+
+@pytest.mark.slow
+def test_the_run_report_reads_the_result_beside_the_run(tiny_result, tmp_path):
+    """The result file beside a run (`report.run_folder.CATCH_FILE`) is read back as written and
+    drawn; one that is not such a result is a named problem of the run folder."""
+    import json
+
+    from evojax_motion.report.figures import plot_catch_success
+    from evojax_motion.report.run_folder import CATCH_FILE, load_run
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(TINY.read_text())
+    (run / CATCH_FILE).write_text(json.dumps(tiny_result))
+    data = load_run(run)
+    for name, d in tiny_result["databases"].items():
+        assert data.catch["databases"][name]["caught"] == d["caught"]
+    assert CATCH_FILE not in data.problems
+    png = plot_catch_success(data.catch, tmp_path / "catch.png")
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    (run / CATCH_FILE).write_text(json.dumps({"databases": {"learned": {"caught": 1}}}))
+    bad = load_run(run)
+    assert bad.catch is None and "benchmarks/catch_success.py" in bad.problems[CATCH_FILE]
