@@ -15,9 +15,12 @@ neighbours' mean) and three motions with those same BCs are compared:
 
 Reported (JSON + figure in ``benchmarks/results/``): eq. 5 costs and their ratios, the final
 hand error, joint-limit violations (every sample checked against the model's ranges), how often
-the limit projection / blend acted, and pass/fail of the acceptance criteria:
-median(learned / optimised) <= 1.05, median learned < median human, hand error p95 <= 5 mm,
-0 violations.
+the limit projection / blend acted, and pass/fail of the acceptance criteria: the optimisation
+compiler's cost <= the learned interpolation's + 0.1 % on >= 99 % of the targets (it starts
+from that interpolation and never returns more, `compiler.optimisation`) and 0 of its motions
+outside the joint limits; median learned < median human; hand error p95 <= 5 mm; 0 violations
+of the learned motions. median(learned / optimised) is reported, no longer a criterion (<= 1.05
+passed while the optimiser lost to the interpolation on most targets).
 
     python benchmarks/online_quality.py --run runs/paper            # a finished training run
     python benchmarks/online_quality.py --config configs/catch_ball.yaml --train-dir runs/paper
@@ -54,7 +57,12 @@ from evojax_motion.online.reach import reach_query  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 HELD_OUT_STREAM = 1000  # fold_in index of the held-out targets' key (training uses 1)
-CRITERIA = {"ratio_median_max": 1.05, "hand_error_p95_max_m": 0.005, "violations_max": 0}
+CRITERIA = {
+    "optimised_not_above_learned_min": 0.99,  # fraction of targets, within NOT_ABOVE_RTOL
+    "hand_error_p95_max_m": 0.005,
+    "violations_max": 0,
+}
+NOT_ABOVE_RTOL = 1e-3  # optimised cost <= learned cost * (1 + this)
 
 
 def held_out_targets(model, cfg, n: int, seed: int) -> np.ndarray:
@@ -177,10 +185,15 @@ def summarise(res: dict, lower, upper, targets) -> dict:
         },
         "optimiser_converged": float(np.mean(np.asarray(om.converged)[use])),
     }  # fmt: skip
-    med = out["ratio_learned_over_optimised"]["p50"]
+    not_above = float(np.mean(c_o <= c_l * (1 + NOT_ABOVE_RTOL)))
+    out["optimised_not_above_learned"] = not_above
+    opt_out = out["limit_violations"]["optimised"]
     out["criteria"] = {
-        "ratio_median": {"value": med, "limit": CRITERIA["ratio_median_max"],
-                         "pass": med <= CRITERIA["ratio_median_max"]},
+        "optimised_not_above_learned": {
+            "value": not_above, "limit": CRITERIA["optimised_not_above_learned_min"],
+            "pass": not_above >= CRITERIA["optimised_not_above_learned_min"],
+        },
+        "optimised_violations": {"value": opt_out, "limit": 0, "pass": opt_out == 0},
         "learned_below_human_median": {
             "value": [float(np.median(c_l)), float(np.median(c_h))],
             "pass": float(np.median(c_l)) < float(np.median(c_h)),

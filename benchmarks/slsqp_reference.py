@@ -12,7 +12,8 @@ kind of solver on exactly our reduced problem, in float64, one condition at a ti
   gradient (``gradient="jax"``, ~5x faster, same optimum to rounding);
 - joint limits: linear inequality constraints ``lower + margin <= q(s_i) <= upper - margin`` on
   the interior samples (the end samples are fixed by the BCs);
-- start: z = 0, the minimum-norm BC solution, the same start as ``compile_optim``.
+- start: z = 0, the same start as ``compile_optim`` (the interpolation compiler's answer, or with
+  ``interp_components: 0`` the minimum-norm BC solution).
 
 Usage: ``ref = solve_reference(robot, grid, basis, boundary, settings)``; ``ref.cost (C,)`` is the
 float64 torque cost of ``ref.q``. `torque_costs_f64` evaluates any trajectories the same way, so a
@@ -171,7 +172,13 @@ class ReferenceSolver:
         self.build = jax.jit(
             exact_matmuls(
                 lambda b, bc: reduced_problems(
-                    b, bc, grid, st.n_components, st.bc_leak, st.max_free_per_joint
+                    b,
+                    bc,
+                    grid,
+                    st.n_components,
+                    st.bc_leak,
+                    st.max_free_per_joint,
+                    interp_components=st.interp_components,
                 )[0]
             )
         )

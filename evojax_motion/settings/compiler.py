@@ -96,8 +96,13 @@ class OptimSettings:
       above ``(1 - limit_headroom) * limit``.
       Without it 271-296 of the paper configuration's 300 offspring a generation went over the
       Mahru arm's velocity limits and were discarded (CHANGELOG.md).
-    - ``n_starts``: starts per condition (1 = z = 0 only); ``start_scale``: spread of the others
-      [rad RMS of q]; ``seed``: the fixed key of those starts (deterministic).
+    - ``interp_components``: the optimiser's problems go through the interpolation compiler's
+      answer (eq. 1-2) with this many of the basis' components (paper: 3;
+      `compiler.problems.interpolation_base`), its start; 0: through the minimum-norm BC
+      solution of all ``n_components``. Either way the result is the best, by the penalised
+      objective on all T samples, of the optimiser's and its start.
+    - ``n_starts``: starts per condition (1 = the start above only); ``start_scale``: spread of
+      the others [rad RMS of q]; ``seed``: the fixed key of those starts (deterministic).
     - ``max_free_per_joint``: free null-space directions kept per joint (static size of z: J times
       this). After both position BCs, K + 1 - 2 = 3 is all there can be; bases whose velocity BCs
       bind too have fewer (the synthetic demonstrations at T = 100: 1 on ~90 % of the joints, 2
@@ -136,6 +141,7 @@ class OptimSettings:
     max_free_per_joint: int = 3
     search_stride: int = 1
     hessian_every: int = 1
+    interp_components: int = 3
     n_starts: int = 1
     start_scale: float = 1.0
     seed: int = 0
@@ -190,6 +196,13 @@ class OptimSettings:
             "hessian_every",
             "an integer >= 1",
             self.hessian_every,
+        )
+        check_setting(
+            isinstance(self.interp_components, int)
+            and 0 <= self.interp_components <= self.n_components,
+            "interp_components",
+            f"an integer in [0, n_components = {self.n_components}]",
+            self.interp_components,
         )
         check_setting(
             isinstance(self.n_starts, int) and self.n_starts >= 1,
