@@ -29,8 +29,6 @@ NOT_RECORDED = "not recorded"
 NOTES = {
     "sharded_generations_h200x2.json": "run when the shipped config's method was `newton` (add "
     "`--set compiler.method=newton` to repeat it)",
-    "optimality_cpu.json": "the first optimiser's code; its `bfgs` rows predate BFGS's "
-    "Gauss-Newton start and subspace step (current: `optimality_cpu_bfgs.json`)",
     "optimality_cpu_bfgs.json": "`python benchmarks/optimality.py --variants bfgs`",
     "optimality_cpu_fast.json": "Newton with the paper config's `search_stride` and "
     "`max_free_per_joint`",
@@ -409,8 +407,8 @@ def online_quality(src: Sources) -> list[str]:
     return section(
         "Online quality (`benchmarks/online_quality.py`)",
         "Motions generated online from a learned database against each target optimised "
-        "directly (eq. 3-5) and against the human-only interpolation; `ratio_median`: learned "
-        "cost / optimised cost, median over the targets.",
+        "directly (eq. 3-5) and against the human-only interpolation; the criteria are the "
+        "benchmark's own (its `criteria` field).",
         body,
         found,
     )
