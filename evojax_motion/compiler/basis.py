@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from evojax_motion.errors import UserError
-from evojax_motion.linalg import jacobi
+from evojax_motion.linalg import jacobi, lapack
 from evojax_motion.linalg.jacobi import gram_two_pass, jacobi_backend
 
 # A component whose singular value is below this fraction of the largest one spans only rounding
@@ -277,7 +277,7 @@ def _pca_rows_svd(centred: jnp.ndarray, n_components: int):
     K)``, of ``centred (k, T)`` by LAPACK (CPU): the left singular vectors of its transpose,
     since LAPACK's path for a tall matrix is the faster one (a paper-scale generation's 2,100
     matrices of 10 x 100 on 2 CPU cores: 43 against 59 ms, CHANGELOG.md)."""
-    u, sv, _ = jnp.linalg.svd(centred.T, full_matrices=False)  # u: (T, min(k, T))
+    u, sv, _ = lapack.svd(centred.T, full_matrices=False)  # u: (T, min(k, T))
     avail = min(u.shape[1], n_components)
     return sv[:avail], u[:, :avail].T
 
@@ -290,7 +290,7 @@ def _pca_rows_gram(centred: jnp.ndarray, n_components: int):
     batched Jacobi on GPUs). For 700,000 Gram matrices of 10 x 100 trajectories (100,000 online
     targets) on an H100 this takes 48 ms, the same two passes with `jacobi_eigh` 137 ms
     (``benchmarks/small_eigh.py``, ``benchmarks/results/small_eigh_gpu.json``)."""
-    _, z = gram_two_pass(centred, jnp.linalg.eigh)  # (k, T) rows s_i v_i, unordered
+    _, z = gram_two_pass(centred, lapack.eigh)  # (k, T) rows s_i v_i, unordered
     sv, order = jax.lax.top_k(jnp.sqrt(jnp.sum(z * z, axis=1)), min(z.shape[0], n_components))
     return sv, z[order] / jnp.where(sv > 0, sv, 1.0)[:, None]
 

@@ -46,6 +46,7 @@ import numpy as np
 
 from evojax_motion.compiler.basis import Basis, jacobi_backend, small_right_svd, small_svd
 from evojax_motion.errors import UserError
+from evojax_motion.linalg import lapack
 from evojax_motion.linalg.jacobi import gram_svd
 from evojax_motion.motion.timegrid import TimeGrid
 
@@ -159,7 +160,7 @@ def _svd(a, jacobi: bool):
     its pseudo-inverse error is removed by the refinement step of `_joint_system`)."""
     if jacobi:
         return gram_svd(a)
-    return jnp.linalg.svd(a, full_matrices=True)
+    return lapack.svd(a, full_matrices=True)
 
 
 def _pinv(a, rtol, ref=None, jacobi: bool = False, svd=None):

@@ -21,6 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.linalg import lapack
+
 # Symmetric eigenproblems up to this size are solved by `jacobi_eigh` (elementwise code, batched
 # by vmap and fused by XLA); larger ones by `jnp.linalg.eigh` (a solver call per matrix on GPUs).
 JACOBI_MAX_N = 12
@@ -106,7 +108,7 @@ def jacobi_eigh(a: jnp.ndarray, sweeps: int | None = None):
     """
     n = a.shape[-1]
     if n > JACOBI_MAX_N:
-        return jnp.linalg.eigh(a)
+        return lapack.eigh(a)
     m = n + n % 2
     a = jnp.pad(a, ((0, m - n), (0, m - n)))
     perms = _round_robin(m)
@@ -188,7 +190,7 @@ def small_svd(
     if jacobi and a.shape[-1] <= JACOBI_MAX_N:
         u, s, vt = jacobi_svd(a)
         return u, s, vt if full_matrices else vt[: s.shape[0]]
-    u, s, vt = jnp.linalg.svd(a, full_matrices=full_matrices)
+    u, s, vt = lapack.svd(a, full_matrices=full_matrices)
     return u, s, vt
 
 
@@ -198,7 +200,7 @@ def small_eigh(a: jnp.ndarray, *, jacobi: bool) -> tuple[jnp.ndarray, jnp.ndarra
     (accelerators, `jacobi_backend`) `jacobi_eigh` up to ``n = JACOBI_MAX_N``."""
     n = a.shape[-1]
     if not (jacobi and n <= JACOBI_MAX_N):
-        return jnp.linalg.eigh(a)
+        return lapack.eigh(a)
     batch = a.shape[:-2]
     w, v = jax.vmap(jacobi_eigh)(a.reshape(-1, n, n))
     order = jnp.argsort(w, axis=-1)
