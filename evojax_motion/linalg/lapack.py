@@ -31,6 +31,18 @@ def _jaxlib_version() -> str:
         return jax.__version__
 
 
+def jaxlib_release() -> tuple[int, ...]:
+    """The installed jaxlib's release as numbers, e.g. ``(0, 10, 2)`` (pre-release tags
+    dropped)."""
+    parts = []
+    for piece in _jaxlib_version().split(".")[:3]:
+        digits = "".join(c for c in piece if c.isdigit()) if piece[:1].isdigit() else ""
+        if not digits:
+            break
+        parts.append(int(digits))
+    return tuple(parts)
+
+
 def one_matrix_at_a_time() -> bool:
     """Whether batched LAPACK calls must run one matrix at a time here (see the module
     docstring): the CPU backend of a jaxlib in `SPLIT_BATCH_JAXLIBS`. Read at trace time."""

@@ -49,10 +49,11 @@ def enable_compile_cache() -> None:
     """Keep XLA's compiled programs (and `compile_traced`'s traced ones) on disk.
 
     ``$EVOJAX_MOTION_JAX_CACHE`` (default ``~/.cache/evojax-motion/jax``; ``off`` disables). A
-    directory that cannot be made (read-only home) leaves the caches off.
+    directory that cannot be made (read-only home), or a jaxlib that cannot load it safely
+    (`compile_cache_loads_safely`), leaves the caches off.
     """
     where = os.environ.get(CACHE_ENV, str(Path.home() / ".cache" / "evojax-motion" / "jax"))
-    if where.lower() == "off":
+    if where.lower() == "off" or not compile_cache_loads_safely():
         return
     try:
         Path(where).mkdir(parents=True, exist_ok=True)
@@ -62,6 +63,23 @@ def enable_compile_cache() -> None:
     # JAX keeps only programs that took >= 1 s to compile by default; a run's setup compiles a
     # dozen that take 0.02-0.2 s each (0.5 s together on 2 CPU cores), paid again every run.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+# jaxlib releases before this one may crash loading a cached CPU program: 0.9.2 on an AVX-512 CPU
+# logs "Target machine feature +prefer-no-scatter is not supported on the host machine" and
+# segfaults in the second run of any command; 0.10.2 loads the same cache.
+FIRST_SAFE_CPU_CACHE_JAXLIB = (0, 10)
+
+
+def compile_cache_loads_safely() -> bool:
+    """Whether this jaxlib and backend load programs from the persistent compilation cache
+    safely (`FIRST_SAFE_CPU_CACHE_JAXLIB` on CPU; accelerators always): where not,
+    `enable_compile_cache` leaves the caches off and every run compiles anew."""
+    if jax.default_backend() != "cpu":
+        return True
+    from evojax_motion.linalg.lapack import jaxlib_release
+
+    return jaxlib_release() >= FIRST_SAFE_CPU_CACHE_JAXLIB
 
 
 def traced_cache_dir() -> Path | None:
