@@ -301,6 +301,34 @@ def train_loop(src: Sources) -> list[str]:
     )
 
 
+def cold_start(src: Sources) -> list[str]:
+    src.mark("cold_start_*.md")
+    found = src.load("cold_start_*.json")
+    rows = [
+        [
+            f"`{name}`",
+            machine_label(d["machine"]),
+            r["command"],
+            r["cache"],
+            f"{r['wall_s']:.1f}",
+            ", ".join(
+                f"{k.removesuffix('_seconds')} {v:.1f}" for k, v in r.get("phases", {}).items()
+            ),
+        ]
+        for name, d in found
+        for r in d["rows"]
+    ]
+    return section(
+        "From launch to result (`benchmarks/cold_start.py`)",
+        "Each command in a fresh process, with an empty cache directory (cold) and again with "
+        "what that run left (warm); wall time from launch to exit. `train` runs "
+        "`configs/catch_ball.yaml` (10 generations); `generate` and `catch` query its database "
+        "with the README's target and ball.",
+        table("file | machine | command | cache | wall s | train phases (s)", rows, "llllrl"),
+        found,
+    )
+
+
 # --- quality ----------------------------------------------------------------------------------
 
 
@@ -725,6 +753,7 @@ SECTIONS: tuple[Callable[[Sources], list[str]], ...] = (
     sweeps,
     sharded,
     train_loop,
+    cold_start,
     optimality,
     online_latency,
     online_quality,
