@@ -304,27 +304,29 @@ def train_loop(src: Sources) -> list[str]:
 def cold_start(src: Sources) -> list[str]:
     src.mark("cold_start_*.md")
     found = src.load("cold_start_*.json")
-    rows = [
-        [
-            f"`{name}`",
-            machine_label(d["machine"]),
-            r["command"],
-            r["cache"],
-            f"{r['wall_s']:.1f}",
-            ", ".join(
-                f"{k.removesuffix('_seconds')} {v:.1f}" for k, v in r.get("phases", {}).items()
-            ),
-        ]
-        for name, d in found
-        for r in d["rows"]
-    ]
+
+    def phases(r: dict | None) -> str:
+        items = (r or {}).get("phases", {}).items()
+        return ", ".join(f"{k.removesuffix('_seconds')} {v:.1f}" for k, v in items)
+
+    rows = []
+    for name, d in found:
+        by = {(r["command"], r["cache"]): r for r in d["rows"]}
+        for command in dict.fromkeys(r["command"] for r in d["rows"]):
+            cold, warm = by.get((command, "cold")), by.get((command, "warm"))
+            rows.append([
+                f"`{name}`", machine_label(d["machine"]), command,
+                f"{cold['wall_s']:.1f}" if cold else NOT_RECORDED,
+                f"{warm['wall_s']:.1f}" if warm else NOT_RECORDED,
+                " / ".join(p for p in (phases(cold), phases(warm)) if p),
+            ])  # fmt: skip
     return section(
         "From launch to result (`benchmarks/cold_start.py`)",
         "Each command in a fresh process, with an empty cache directory (cold) and again with "
         "what that run left (warm); wall time from launch to exit. `train` runs "
-        "`configs/catch_ball.yaml` (10 generations); `generate` and `catch` query its database "
-        "with the README's target and ball.",
-        table("file | machine | command | cache | wall s | train phases (s)", rows, "llllrl"),
+        "`configs/catch_ball.yaml` (10 generations; its phases cold / warm); `generate` and "
+        "`catch` query its database with the README's target and ball.",
+        table("file | machine | command | cold s | warm s | train phases (s)", rows, "lllrrl"),
         found,
     )
 
