@@ -15,7 +15,7 @@ demos_seconds               11.9
 conditions_seconds          9.5
 compile_seconds             4.3
 total_seconds               32.3
-run_dir                     /tmp/run
+run_dir                     runs/demo
 plots                       a.png, b.png
 """
 
