@@ -4,15 +4,15 @@ Runs ``evojax-motion`` as a user does, each command in a new process, first with
 directory of its own (``$EVOJAX_MOTION_JAX_CACHE``: compiled and traced programs, synthesised
 demonstrations; `run.cache`) and then again with the cache that its first run filled:
 
-- ``import``: ``python -c "import evojax_motion.run.training"`` (interpreter, JAX, MuJoCo, the
-  package);
+- ``import``: ``python -c "import evojax_motion.run.training"`` (the interpreter and the
+  package's modules; JAX and MuJoCo load later, inside each command);
 - ``train``: ``train CONFIG`` into a fresh run folder; its summary's phases (``demos_seconds``,
   ``conditions_seconds``, ``compile_seconds``, ``seconds_per_generation`` x generations) beside the
   wall time measured here;
 - ``generate`` and ``catch``: one query each on the database that the cold ``train`` wrote
   (``--target`` / ``--ball`` as in the README).
 
-Wall times are the parent's clock around each process (launch to exit). The issue's targets:
+Wall times are the parent's clock around each process (launch to exit). Targets:
 ``train configs/catch_ball.yaml`` <= 10 s cold on 2 CPU cores, <= 15 s on one H100, <= 3 s
 warm; ``generate`` and ``catch`` <= 3 s cold.
 
@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402
-from result_files import machine_line, write_result  # noqa: E402
+from result_files import machine_line, phases_text, write_result  # noqa: E402
 
 from evojax_motion.run.cache import CACHE_ENV  # noqa: E402
 
@@ -121,9 +121,7 @@ def main(argv=None) -> dict:
         "|---|---|---:|---:|---|",
     ]
     for r in rows:
-        phases = ", ".join(
-            f"{k.removesuffix('_seconds')} {v:.1f}" for k, v in r.get("phases", {}).items()
-        )
+        phases = phases_text(r.get("phases", {}))
         md.append(f"| {r['command']} | {r['cache']} | {r['wall_s']:.1f} | {r['exit']} | {phases} |")
     write_result(
         Path(args.out_dir) / f"cold_start_{args.tag or m['platform']}", result, "\n".join(md)

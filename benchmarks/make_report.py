@@ -19,6 +19,10 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from result_files import phases_text  # noqa: E402
+
 RESULTS = ROOT / "benchmarks" / "results"
 PAGE = ROOT / "BENCHMARKS.md"
 MAX_LINES = 320  # the page stays a summary of the current figures
@@ -305,20 +309,17 @@ def cold_start(src: Sources) -> list[str]:
     src.mark("cold_start_*.md")
     found = src.load("cold_start_*.json")
 
-    def phases(r: dict | None) -> str:
-        items = (r or {}).get("phases", {}).items()
-        return ", ".join(f"{k.removesuffix('_seconds')} {v:.1f}" for k, v in items)
-
     rows = []
     for name, d in found:
         by = {(r["command"], r["cache"]): r for r in d["rows"]}
         for command in dict.fromkeys(r["command"] for r in d["rows"]):
             cold, warm = by.get((command, "cold")), by.get((command, "warm"))
+            both = (cold or {}, warm or {})
             rows.append([
                 f"`{name}`", machine_label(d["machine"]), command,
                 f"{cold['wall_s']:.1f}" if cold else NOT_RECORDED,
                 f"{warm['wall_s']:.1f}" if warm else NOT_RECORDED,
-                " / ".join(p for p in (phases(cold), phases(warm)) if p),
+                " / ".join(filter(None, (phases_text(r.get("phases", {})) for r in both))),
             ])  # fmt: skip
     return section(
         "From launch to result (`benchmarks/cold_start.py`)",

@@ -20,3 +20,8 @@ def write_result(stem: Path, result: dict, markdown: str) -> None:
     stem.with_name(stem.name + ".json").write_text(json.dumps(result, indent=2) + "\n")
     stem.with_name(stem.name + ".md").write_text(markdown.rstrip("\n") + "\n")
     print(markdown)
+
+
+def phases_text(phases: dict[str, float]) -> str:
+    """``"demos 11.9, conditions 9.5"`` of ``{"demos_seconds": 11.9, ...}`` (a run's phases)."""
+    return ", ".join(f"{k.removesuffix('_seconds')} {v:.1f}" for k, v in phases.items())

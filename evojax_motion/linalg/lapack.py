@@ -1,10 +1,10 @@
 """LAPACK's SVD and symmetric eigensolver (``jnp.linalg.svd`` / ``eigh``), safe on every jaxlib.
 
-jaxlib 0.10.0-0.10.2 split a batched LAPACK call on CPU into pieces for XLA's intra-op thread pool
-and wait for them on the calling thread. When XLA runs as many such calls at once as the pool
-has threads (two on a 2-core machine), each of them waits on a pool thread for pieces that no
-free thread is left to run, and the program never returns: the optimisation compiler on the
-paper's problems hung on its second or third call (both pool threads in
+jaxlib 0.10.0-0.10.2 split a batched LAPACK call on CPU into pieces for XLA's intra-op thread
+pool and wait for them on the thread that made the call. When XLA runs as many such calls at
+once as the pool has threads (two on a 2-core machine), each of them waits on a pool thread for
+pieces that no free thread is left to run, and the program never returns: the optimisation
+compiler on the paper's problems hung on its second or third call (both pool threads in
 ``jax::ParallelBatchMap`` under ``lapack_sgesdd_ffi``). A call of one matrix runs on the calling
 thread. On those versions `svd` and `eigh` therefore solve a batch one matrix at a time
 (``lax.map``, also under ``vmap``); elsewhere they are ``jnp.linalg``'s own. Each matrix goes
@@ -14,39 +14,20 @@ through the same LAPACK routine either way.
 from __future__ import annotations
 
 import functools
-from importlib import metadata
 
 import jax
 import jax.numpy as jnp
+import jaxlib.version
 
 # jaxlib releases whose CPU LAPACK kernels wait on pool threads for pieces of a batch
-SPLIT_BATCH_JAXLIBS = frozenset({"0.10.0", "0.10.1", "0.10.2"})
-
-
-@functools.cache
-def _jaxlib_version() -> str:
-    try:
-        return metadata.version("jaxlib")
-    except metadata.PackageNotFoundError:  # a source build without metadata
-        return jax.__version__
-
-
-def jaxlib_release() -> tuple[int, ...]:
-    """The installed jaxlib's release as numbers, e.g. ``(0, 10, 2)`` (pre-release tags
-    dropped)."""
-    parts = []
-    for piece in _jaxlib_version().split(".")[:3]:
-        digits = "".join(c for c in piece if c.isdigit()) if piece[:1].isdigit() else ""
-        if not digits:
-            break
-        parts.append(int(digits))
-    return tuple(parts)
+SPLIT_BATCH_JAXLIBS = frozenset({(0, 10, 0), (0, 10, 1), (0, 10, 2)})
 
 
 def one_matrix_at_a_time() -> bool:
     """Whether batched LAPACK calls must run one matrix at a time here (see the module
     docstring): the CPU backend of a jaxlib in `SPLIT_BATCH_JAXLIBS`. Read at trace time."""
-    return jax.default_backend() == "cpu" and _jaxlib_version() in SPLIT_BATCH_JAXLIBS
+    release = tuple(jaxlib.version.__version_info__[:3])
+    return jax.default_backend() == "cpu" and release in SPLIT_BATCH_JAXLIBS
 
 
 def _serial(fn):

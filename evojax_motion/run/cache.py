@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jaxlib.version
 import numpy as np
 
 CACHE_ENV = "EVOJAX_MOTION_JAX_CACHE"  # a directory, or "off"
@@ -77,9 +78,7 @@ def compile_cache_loads_safely() -> bool:
     `enable_compile_cache` leaves the caches off and every run compiles anew."""
     if jax.default_backend() != "cpu":
         return True
-    from evojax_motion.linalg.lapack import jaxlib_release
-
-    return jaxlib_release() >= FIRST_SAFE_CPU_CACHE_JAXLIB
+    return tuple(jaxlib.version.__version_info__[:2]) >= FIRST_SAFE_CPU_CACHE_JAXLIB
 
 
 def traced_cache_dir() -> Path | None:

@@ -5,6 +5,7 @@ import re
 
 import jax
 import jax.numpy as jnp
+import jaxlib.version
 import numpy as np
 import pytest
 
@@ -70,8 +71,8 @@ def test_one_matrix_at_a_time_leaves_no_batched_lapack_call(one_at_a_time):
 
 def test_affected_releases_are_the_ones_with_split_batches(monkeypatch):
     """The switch follows the jaxlib release on CPU and nothing else."""
-    monkeypatch.setattr(lapack, "_jaxlib_version", lambda: "0.10.2")
+    monkeypatch.setattr(jaxlib.version, "__version_info__", (0, 10, 2))
     assert lapack.one_matrix_at_a_time() == (jax.default_backend() == "cpu")
-    for other in ("0.9.2", "0.11.2"):
-        monkeypatch.setattr(lapack, "_jaxlib_version", lambda v=other: v)
+    for other in ((0, 9, 2), (0, 11, 2)):
+        monkeypatch.setattr(jaxlib.version, "__version_info__", other)
         assert not lapack.one_matrix_at_a_time()
