@@ -25,3 +25,8 @@ def write_result(stem: Path, result: dict, markdown: str) -> None:
 def phases_text(phases: dict[str, float]) -> str:
     """``"demos 11.9, conditions 9.5"`` of ``{"demos_seconds": 11.9, ...}`` (a run's phases)."""
     return ", ".join(f"{k.removesuffix('_seconds')} {v:.1f}" for k, v in phases.items())
+
+
+def latency_ms(pct: dict | None) -> str:
+    """``{"p50": s, "p99": s}`` -> ``"p50 / p99"`` in ms (``-`` where absent)."""
+    return "-" if pct is None else f"{1e3 * pct['p50']:.1f} / {1e3 * pct['p99']:.1f}"

@@ -188,7 +188,7 @@ def _session(path: str, mtime_ns: int, backend: str):
 
     model = load_online_model(path, backend=backend)
     args = (model.robot, model.dyn, model.basis_settings, model.settings)
-    gen = make_online_generator(model.robot, model.dyn, model.grid, *args[2:])
+    gen = make_online_generator(model.robot, model.dyn, model.grid, *args[2:], one_shot=True)
     return model, gen, make_reach_checker(*args)
 
 
@@ -375,8 +375,9 @@ def _catcher(opened, catch):
     if key not in _CATCHERS:
         model = opened[0]
         _CATCHERS[key] = make_catcher(
-            model.robot, model.dyn, model.grid, model.basis_settings, model.settings, catch
-        )
+            model.robot, model.dyn, model.grid, model.basis_settings, model.settings, catch,
+            one_shot=True,
+        )  # fmt: skip
     return _CATCHERS[key]
 
 

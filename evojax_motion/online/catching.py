@@ -54,16 +54,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import one_shot as one_shot_options
+from evojax_motion.compiler.basis import Neighbours
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import Database
 from evojax_motion.motion.timegrid import TimeGrid
-from evojax_motion.online.generation import OnlineResult, build_problem, finish_motion
+from evojax_motion.online.generation import OnlineResult, finish_motion, problem_of
 from evojax_motion.online.limits import joint_limits_f32
 from evojax_motion.online.palm import catch_posture, palm_normal
-from evojax_motion.online.reach import final_posture, region_query, resolve_settings
+from evojax_motion.online.reach import (
+    Reach,
+    final_posture,
+    reach_of,
+    region_query,
+    resolve_settings,
+)
 from evojax_motion.settings.compiler import BasisSettings
 from evojax_motion.settings.online import BALL_RADIUS, CatchSettings, OnlineSettings
 
@@ -157,11 +165,13 @@ def plan_catch(
     p0,
     v0,
     options: int = 1,
-) -> CatchPlan:
+) -> tuple[CatchPlan, Reach, Neighbours]:
     """Choose the catch of each ball ``p0, v0 (B, 3)`` (module docstring). Pure, jittable.
 
     ``options`` > 1: the ``options`` best catches of each ball, best first, as a plan of
     ``B * options`` rows (ball-major; a row with ``feasible`` False where a ball has fewer).
+    Returns ``(plan, reach, neighbours)``: the `CatchPlan` and, per row, steps 1-2 at its catch
+    point (done while choosing; `catch_query` builds the motions on them).
     """
     dtype = jnp.asarray(db.q).dtype
     p0, v0 = jnp.asarray(p0, dtype), jnp.asarray(v0, dtype)
@@ -198,10 +208,12 @@ def plan_catch(
         return jnp.take_along_axis(a, sub.reshape(sub.shape + (1,) * (a.ndim - 2)), axis=1)
 
     # Stage 1 (the learned region, the natural duration) at those samples.
-    depth, region_gap, d_nat, _, nb = region_query(
+    depth, region_gap, d_nat, n_inside, nb = region_query(
         db, of_sub(pos).reshape(b * r, 3), basis_settings, settings
     )
-    depth, region_gap, d_nat = (x.reshape(b, r) for x in (depth, region_gap, d_nat))
+    depth, region_gap, d_nat, n_inside = (
+        x.reshape(b, r) for x in (depth, region_gap, d_nat, n_inside)
+    )
     alive_r, t_r = of_sub(alive), times[sub]
     available_r = t_r - catch.reaction_time
     margin = available_r - d_nat / catch.speedup
@@ -220,8 +232,8 @@ def plan_catch(
     flat = (jnp.arange(b)[:, None] * r + cand).reshape(-1)
     nb_c = jax.tree_util.tree_map(lambda x: x[flat], nb)
     points = of_sub(pos).reshape(b * r, 3)[flat]
-    ik_error = final_posture(dyn, db, points, nb_c, lower, upper, settings).pos_error
-    ik_error = ik_error.reshape(b, m)
+    ik = final_posture(dyn, db, points, nb_c, lower, upper, settings)
+    ik_error = ik.pos_error.reshape(b, m)
 
     def cand_of(a):
         return jnp.take_along_axis(a, cand, axis=1)
@@ -262,8 +274,17 @@ def plan_catch(
     def per_option(a):  # (B, ...) -> (B * K, ...)
         return jnp.repeat(a, k, axis=0)
 
+    def at_rows(a):  # (B * M, ...) -> (B * K, ...) at the options
+        rows_m = (jnp.arange(b)[:, None] * m + pick).reshape(-1)
+        return a[rows_m]
+
+    ik_k = jax.tree_util.tree_map(at_rows, ik)
+    reach = reach_of(
+        dyn, at(cand_of(depth)), at(cand_of(region_gap)), at(cand_of(d_nat)),
+        at(cand_of(n_inside)), ik_k, settings,
+    )  # fmt: skip
     b_rows = jnp.arange(b * k)
-    return CatchPlan(
+    plan = CatchPlan(
         feasible=feasible,
         sample=jnp.where(feasible, idx, -1).astype(jnp.int32),
         catch_time=t_c,
@@ -287,6 +308,7 @@ def plan_catch(
         times=jnp.broadcast_to(times, (b * k, s)),
         palm_facing=jnp.full(b * k, jnp.nan, dtype),
     )
+    return plan, reach, jax.tree_util.tree_map(at_rows, nb_c)
 
 
 class Catch(NamedTuple):
@@ -319,19 +341,17 @@ def catch_query(
     lower = jnp.asarray(lower, jnp.asarray(db.q).dtype)
     upper = jnp.asarray(upper, lower.dtype)
     b = jnp.shape(p0)[0]
-    plan = plan_catch(
-        dyn, lower, upper, gravity, basis_settings, settings, catch, db, p0, v0,
-        options=MOTION_OPTIONS,
-    )  # fmt: skip
-    k = plan.feasible.shape[0] // b  # fewer options where the path has fewer candidates
-    q_start = jnp.asarray(q_start)
-    motions = functools.partial(
-        _catch_motions, dyn, grid, lower, upper, basis_settings, settings, catch, db, palm
+    chosen = plan_catch(
+        dyn, lower, upper, gravity, basis_settings, settings, catch, db, p0, v0, MOTION_OPTIONS
     )
-    options = plan.feasible.reshape(b, k)
+    k = chosen[0].feasible.shape[0] // b  # fewer options where the path has fewer candidates
+    q_start = jnp.asarray(q_start)
+    motions = functools.partial(_catch_motions, dyn, grid, lower, upper, settings, catch, db, palm)
+    options = chosen[0].feasible.reshape(b, k)
 
     def option(i):  # the motions of every ball's option i
-        return motions(jax.tree_util.tree_map(lambda a: a[jnp.arange(b) * k + i], plan), q_start)
+        plan, reach, nb = jax.tree_util.tree_map(lambda a: a[jnp.arange(b) * k + i], chosen)
+        return motions(plan, reach, nb, q_start)
 
     def more(state):  # another option is left for a ball whose motion is not usable yet
         i, best = state
@@ -356,12 +376,11 @@ def catch_query(
 
 
 def _catch_motions(
-    dyn, grid, lower, upper, basis_settings, settings, catch, db, palm, plan: CatchPlan, q_start
+    dyn, grid, lower, upper, settings, catch, db, palm, plan: CatchPlan, reach, nb, q_start
 ) -> Catch:
-    """The motions of the catches ``plan`` (one per row) from ``q_start`` (`catch_query`)."""
-    basis, boundary, reach = build_problem(
-        dyn, db, plan.catch_point, plan.duration, q_start, lower, upper, basis_settings, settings
-    )
+    """The motions of the catches ``plan`` (one per row; ``reach``, ``nb``: steps 1-2 at their
+    catch points) from ``q_start`` (`catch_query`)."""
+    basis, boundary, reach = problem_of(db, reach, nb, plan.duration, q_start, settings)
     target = plan.catch_point
     if palm is not None:  # the palm faces the ball and holds it: `catch_posture`
         speed = jnp.linalg.norm(plan.ball_velocity, axis=1, keepdims=True)
@@ -393,40 +412,20 @@ def make_catcher(
     basis_settings: BasisSettings | None = None,
     settings: OnlineSettings | None = None,
     catch: CatchSettings | None = None,
+    one_shot: bool = False,
 ):
-    """Jitted ``catcher(db, p0 (B, 3), v0 (B, 3), q_start (B, J)) -> Catch``."""
-    lower, upper, gravity, basis_settings, settings, catch = _static_args(
-        robot, basis_settings, settings, catch
-    )
-    dyn, options = unfused_cpu_program(dyn)  # as `online.generation.make_online_generator`
-    fn = functools.partial(
-        catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch,
-        palm=palm_normal(robot),
-    )  # fmt: skip
-    return jax.jit(exact_matmuls(fn), compiler_options=options)
-
-
-def _static_args(robot: Robot, basis_settings, settings, catch):
-    """What catcher and planner close over: limits, gravity and the resolved settings."""
+    """Jitted ``catcher(db, p0 (B, 3), v0 (B, 3), q_start (B, J)) -> Catch``. ``one_shot``: for
+    a ball or two (the command line): compiled faster, run slower (`compile_options.ONE_SHOT`:
+    on 2 CPU cores 10.3 -> 3.9 s to compile, 1.6 -> 3.4 ms a ball)."""
     basis_settings, settings = resolve_settings(basis_settings, settings)
     gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
     lower, upper = joint_limits_f32(robot)
-    return lower, upper, gravity, basis_settings, settings, catch or CatchSettings()
-
-
-def make_planner(
-    robot: Robot,
-    dyn: Dynamics,
-    basis_settings: BasisSettings | None = None,
-    settings: OnlineSettings | None = None,
-    catch: CatchSettings | None = None,
-):
-    """Jitted ``planner(db, p0 (B, 3), v0 (B, 3)) -> CatchPlan`` (no motion)."""
-    lower, upper, gravity, basis_settings, settings, catch = _static_args(
-        robot, basis_settings, settings, catch
-    )
-    fn = functools.partial(plan_catch, dyn, lower, upper, gravity, basis_settings, settings, catch)
-    return jax.jit(exact_matmuls(fn))
+    dyn, options = unfused_cpu_program(dyn)  # as `online.generation.make_online_generator`
+    fn = functools.partial(
+        catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings,
+        catch or CatchSettings(), palm=palm_normal(robot),
+    )  # fmt: skip
+    return jax.jit(exact_matmuls(fn), compiler_options=one_shot_options(options, one_shot))
 
 
 def validate_ball(ball, where: str = "--ball") -> tuple[np.ndarray, np.ndarray]:

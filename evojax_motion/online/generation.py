@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import one_shot as one_shot_options
 from evojax_motion.compiler.basis import pca_basis
 from evojax_motion.compiler.interpolation import (
     Boundary,
@@ -137,8 +138,14 @@ def build_problem(
     ``duration (C,)`` [s] (NaN: the neighbours' mean), ``q_start (C, J)`` inside the limits.
     ``basis`` holds ``settings.limit_components`` components (enough for eq. 1 and eq. 3).
     """
-    dtype = jnp.asarray(db.q).dtype
     reach, nb = reach_query(dyn, db, targets, lower, upper, basis_settings, settings)
+    return problem_of(db, reach, nb, duration, q_start, settings)
+
+
+def problem_of(db: Database, reach: Reach, nb, duration, q_start, settings: OnlineSettings):
+    """`build_problem` for targets whose steps 1-2 are done: ``reach`` and its neighbours ``nb``
+    (`online.reach.reach_query`; a catch plan computes them while choosing). Pure."""
+    dtype = jnp.asarray(db.q).dtype
     basis = pca_basis(
         jnp.asarray(db.q), jnp.asarray(db.duration, dtype), nb, settings.limit_components
     )
@@ -295,19 +302,21 @@ def make_online_generator(
     basis_settings: BasisSettings | None = None,
     settings: OnlineSettings | None = None,
     fast_path: bool = True,
+    one_shot: bool = False,
 ) -> Callable:
     """The jitted query ``generate(db, targets (C, 3), duration (C,), q_start (C, J))``.
 
     Returns `OnlineResult` (device arrays). ``db`` is an argument (not a constant) so one compiled
     function serves the learned and the human-only database alike; it recompiles only for a new
     C or database shape. ``fast_path``: compile through `model.dynamics.unfused_cpu_program` (faster
-    on CPU; False: ``dyn`` as given, XLA's default options).
+    on CPU; False: ``dyn`` as given, XLA's default options). ``one_shot``: for a query or two
+    (the command line): compiled faster, run slower (`compile_options.ONE_SHOT`).
     """
     basis_settings, settings = resolve_settings(basis_settings, settings)
     lower, upper = joint_limits_f32(robot)
     dyn, options = unfused_cpu_program(dyn) if fast_path else (dyn, None)
     fn = functools.partial(online_query, dyn, grid, lower, upper, basis_settings, settings)
-    return jax.jit(exact_matmuls(fn), compiler_options=options)
+    return jax.jit(exact_matmuls(fn), compiler_options=one_shot_options(options, one_shot))
 
 
 def online_database(db: Database) -> Database:

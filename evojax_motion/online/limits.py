@@ -235,23 +235,50 @@ def peak_margin(peak, limit):
 
 
 SPEED_BLENDS = (0.0, 0.25, 0.5, 0.75, 1.0)  # `fit_speed`'s candidate weights of minimum jerk
+PLATEAU_RAMP = 0.3  # `plateau_path`'s share of the motion spent speeding up (and slowing down)
+
+
+def plateau_path(grid: TimeGrid, q0, qf, ramp: float = PLATEAU_RAMP) -> jnp.ndarray:
+    """Rest-to-rest paths ``q0 (C, J) -> qf (C, J)`` at a speed plateau: ``(C, T, J)``.
+
+    On normalised time s the speed rises as ``3x^2 - 2x^3`` (x = s / ramp: zero acceleration at
+    the start, continuous acceleration), holds ``1 / (1 - ramp)`` of the mean speed, and falls
+    symmetrically. Its peak speed is ``1 / (1 - ramp)`` (1.43 at the default) times the mean,
+    against 1.875 for minimum jerk, at ``1.5 / (ramp (1 - ramp))`` (7.1) against 5.8 times the
+    mean acceleration. Monotone between q0 and qf, so inside any box that holds both ends.
+    """
+    s = jnp.asarray(grid.s, q0.dtype)
+    v = 1.0 / (1.0 - ramp)
+
+    def rise(u):  # distance covered while speeding up for normalised time u in [0, ramp]
+        x = u / ramp
+        return v * ramp * (x**3 - 0.5 * x**4)
+
+    head = rise(jnp.minimum(s, ramp)) + v * jnp.clip(s - ramp, 0.0, 1.0 - 2.0 * ramp)
+    tail = 1.0 - rise(jnp.clip(1.0 - s, 0.0, ramp))
+    shape = jnp.where(s <= 1.0 - ramp, head, tail)
+    return q0[:, None, :] + (qf - q0)[:, None, :] * shape[None, :, None]
 
 
 def fit_speed(grid: TimeGrid, q, q0, qf, duration, vel_usable):
-    """Paths ``q (C, T, J)`` whose joints would be too fast at ``duration (C,)`` blended, per
-    joint, toward the rest-to-rest minimum-jerk path ``q0 -> qf (C, J)``: the smallest weight
-    of `SPEED_BLENDS` with ``|qd| <= vel_usable (J,)`` at that duration, else 1. A joint fast
-    enough keeps its path exactly; every blend keeps the BCs and stays inside any box holding
-    both paths. Returns ``(q, weights (C, J))``.
+    """Paths ``q (C, T, J)`` whose joints would be too fast at ``duration (C,)`` made slower,
+    per joint: blended toward the rest-to-rest minimum-jerk path ``q0 -> qf (C, J)`` by the
+    smallest weight of `SPEED_BLENDS` with ``|qd| <= vel_usable (J,)`` at that duration, else
+    replaced by `plateau_path` (the lowest peak speed of the candidates; it also when it is still
+    too fast). A joint fast enough keeps its path exactly; every candidate keeps the BCs and
+    stays inside any box holding both paths. Returns ``(q, choice (C, J))``: the index into
+    `SPEED_BLENDS`, or ``len(SPEED_BLENDS)`` for the plateau.
     """
     safe = minimum_jerk(grid, q0, qf)
+    paths = [(1.0 - lam) * q + lam * safe if lam > 0 else q for lam in SPEED_BLENDS]
+    paths.append(plateau_path(grid, q0, qf))
     ones = jnp.ones(q.shape[0], q.dtype)
 
-    def peak(lam):  # (C, J) largest speed of the blend at the duration
-        qd = derivatives(grid, (1.0 - lam) * q + lam * safe, ones)[0]
+    def peak(path):  # (C, J) largest speed of the path at the duration
+        qd = derivatives(grid, path, ones)[0]
         return jnp.max(jnp.abs(qd), axis=1) / duration[:, None]
 
-    fits = jnp.stack([peak(lam) <= vel_usable for lam in SPEED_BLENDS])  # (L, C, J)
-    first = jnp.where(jnp.any(fits, axis=0), jnp.argmax(fits, axis=0), len(SPEED_BLENDS) - 1)
-    lam = jnp.asarray(SPEED_BLENDS, q.dtype)[first][:, None, :]  # (C, 1, J)
-    return jnp.where(lam > 0, (1.0 - lam) * q + lam * safe, q), lam[:, 0]
+    fits = jnp.stack([peak(path) <= vel_usable for path in paths])  # (L, C, J)
+    first = jnp.where(jnp.any(fits, axis=0), jnp.argmax(fits, axis=0), len(paths) - 1)
+    chosen = jnp.take_along_axis(jnp.stack(paths), first[None, :, None, :], axis=0)[0]
+    return chosen, first

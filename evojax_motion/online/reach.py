@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import ONE_SHOT
 from evojax_motion.compiler.basis import select_neighbours
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
@@ -121,17 +122,21 @@ def reach_query(
     """
     depth, gap, natural, n_inside, nb = region_query(db, points, basis_settings, settings)
     ik = final_posture(dyn, db, points, nb, lower, upper, settings)
-    reach = Reach(
+    return reach_of(dyn, depth, gap, natural, n_inside, ik, settings), nb
+
+
+def reach_of(dyn: Dynamics, depth, region_gap, natural, n_inside, ik, settings: OnlineSettings):
+    """`Reach` from `region_query`'s ``(P,)`` outputs and `final_posture`'s ``ik``. Pure."""
+    return Reach(
         depth=depth,
-        region_gap=gap,
+        region_gap=region_gap,
         ik_error=ik.pos_error,
         q_final=ik.q,
         hand=jax.vmap(lambda q: dyn.site_pose(q)[0])(ik.q),
         natural_duration=natural,
         n_inside=n_inside,
-        reachable=(gap <= 0.0) & (ik.pos_error <= settings.reach_tolerance),
+        reachable=(region_gap <= 0.0) & (ik.pos_error <= settings.reach_tolerance),
     )
-    return reach, nb
 
 
 def resolve_settings(basis_settings, settings):
@@ -151,11 +156,12 @@ def make_reach_checker(
     basis_settings: BasisSettings | None = None,
     settings: OnlineSettings | None = None,
 ) -> Callable:
-    """Jitted ``check(db, points (P, 3)) -> Reach``: cheap (no PCA, no dynamics)."""
+    """Jitted ``check(db, points (P, 3)) -> Reach``: cheap (no PCA, no dynamics; compiled as
+    `compile_options.ONE_SHOT`: it serves the command line's messages)."""
     basis_settings, settings = resolve_settings(basis_settings, settings)
     lower, upper = joint_limits_f32(robot)
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=ONE_SHOT)
     @exact_matmuls
     def check(db, points):
         return reach_query(dyn, db, points, lower, upper, basis_settings, settings)[0]

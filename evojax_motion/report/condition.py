@@ -189,7 +189,7 @@ def _online_catch(data: RunData, ctx: Context):
     point."""
     from evojax_motion.online.generation import make_online_generator, online_database, to_numpy
 
-    gen = make_online_generator(ctx.robot, ctx.dyn, ctx.grid, data.config.basis)
+    gen = make_online_generator(ctx.robot, ctx.dyn, ctx.grid, data.config.basis, one_shot=True)
     res = gen(
         online_database(data.db_final[0]),
         np.asarray(ctx.target, np.float32)[None],
@@ -230,7 +230,9 @@ def catch_animation(data: RunData, ctx: Context, frames: int, notes: list[str]):
     settings = CatchSettings()
     gravity = np.asarray(ctx.robot.mj_model.opt.gravity, float)
     p0, v0, t_pass = throw(ctx.target, ctx.duration, gravity, settings.reaction_time)
-    catcher = make_catcher(ctx.robot, ctx.dyn, ctx.grid, data.config.basis, None, settings)
+    catcher = make_catcher(
+        ctx.robot, ctx.dyn, ctx.grid, data.config.basis, None, settings, one_shot=True
+    )
     rest = np.asarray(ctx.robot.rest, np.float32)[None]
     f32 = np.float32
     db = online_database(data.db_final[0])

@@ -192,7 +192,7 @@ def test_fit_speed_straightens_only_the_joints_too_fast():
     """A deadline: the joint whose path is too fast blends toward minimum jerk until it fits; a
     joint fast enough keeps its path bit for bit; the BCs stay."""
     from evojax_motion.motion.timegrid import derivatives, make_time_grid
-    from evojax_motion.online.limits import fit_speed, minimum_jerk
+    from evojax_motion.online.limits import SPEED_BLENDS, fit_speed, minimum_jerk
 
     grid = make_time_grid(100)
     q0, qf = np.zeros((1, 2), np.float32), np.array([[1.0, 1.0]], np.float32)
@@ -206,6 +206,35 @@ def test_fit_speed_straightens_only_the_joints_too_fast():
     assert before[0] > limit[0] >= before[1]
     out, lam = (np.asarray(a) for a in fit_speed(grid, q, q0, qf, duration, limit))
     after = np.abs(np.asarray(derivatives(grid, out, duration)[0])).max(axis=1)[0]
-    assert 0 < lam[0, 0] < 1 and lam[0, 1] == 0 and (after <= limit).all()
+    assert 0 < lam[0, 0] < len(SPEED_BLENDS) - 1 and lam[0, 1] == 0 and (after <= limit).all()
     np.testing.assert_array_equal(out[..., 1], q[..., 1])
     np.testing.assert_allclose(out[0, [0, -1]], np.r_[q0, qf], atol=1e-6)
+
+
+def test_fit_speed_falls_back_to_the_plateau_path():
+    """A limit that minimum jerk (peak 1.875 x the mean speed) exceeds but the plateau path (1 /
+    (1 - ramp)) meets: the plateau is chosen; it starts and ends at rest, with continuous speed,
+    its peak is the formula's and it is monotone; a limit too low for both keeps the plateau."""
+    from evojax_motion.motion.timegrid import derivatives, make_time_grid
+    from evojax_motion.online.limits import PLATEAU_RAMP, SPEED_BLENDS, fit_speed, minimum_jerk
+
+    grid = make_time_grid(201)
+    q0, qf = np.zeros((1, 1), np.float32), np.ones((1, 1), np.float32)
+    q = np.asarray(minimum_jerk(grid, q0, qf))
+    duration = np.array([1.0], np.float32)
+    peak_plateau = 1.0 / (1.0 - PLATEAU_RAMP)
+    for limit, expect in ((1.7, len(SPEED_BLENDS)), (1.2, len(SPEED_BLENDS)), (1.9, 0)):
+        out, choice = (
+            np.asarray(a)
+            for a in fit_speed(grid, q, q0, qf, duration, np.array([limit], np.float32))
+        )
+        assert choice[0, 0] == expect, limit
+    out, _ = (
+        np.asarray(a) for a in fit_speed(grid, q, q0, qf, duration, np.array([1.7], np.float32))
+    )
+    qd = np.asarray(derivatives(grid, out, duration)[0])[0, :, 0]
+    PEAK_TOL = 0.01  # finite differences on 201 samples against the closed-form peak
+    assert abs(qd.max() - peak_plateau) < PEAK_TOL * peak_plateau
+    assert (np.diff(out[0, :, 0]) >= 0).all()
+    np.testing.assert_allclose(out[0, [0, -1], 0], [0.0, 1.0], atol=1e-6)
+    np.testing.assert_allclose(qd[[0, -1]], 0.0, atol=1e-3)
