@@ -57,6 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import ONE_SHOT
 from evojax_motion.demonstrations.shaping import (
     HALTON_BASES,
     halton,
@@ -159,7 +160,7 @@ class _Robot(NamedTuple):
     velocity_limit: _Array
 
 
-@functools.partial(jax.jit, static_argnames="rounds")
+@functools.partial(jax.jit, static_argnames="rounds", compiler_options=ONE_SHOT)
 def _shift_and_round_keys(key, rounds: int):
     """The Halton shift ``(len(HALTON_BASES),)`` and one key per round ``(rounds,)``, from the
     two halves of ``key`` (one program: op by op, each would compile on its own)."""
@@ -168,7 +169,6 @@ def _shift_and_round_keys(key, rounds: int):
     return shift, jax.vmap(functools.partial(jax.random.fold_in, k_rounds))(jnp.arange(rounds))
 
 
-@functools.partial(jax.jit, static_argnames=("dyn", "samples", "ik_iters"))
 @exact_matmuls
 def _simulate(
     dyn: Dynamics, samples: int, ik_iters: int, keys, rnd, target, prm: _Params, rob: _Robot
@@ -273,6 +273,11 @@ class _Checks(NamedTuple):
             & (self.track_error <= settings.catch_tolerance)
             & ~self.touch.any(axis=1)
         )
+
+
+_simulate_jit = jax.jit(
+    _simulate, static_argnames=("dyn", "samples", "ik_iters"), compiler_options=ONE_SHOT
+)
 
 
 def _checks(trials: _Trials, settings: DemoSettings) -> _Checks:
@@ -394,11 +399,13 @@ def generate_demonstrations(
             statics = (dyn, settings.samples, settings.ik_iters)
             program_args: tuple
             if cache_parts is None:  # `_simulate`'s own jit: traced once per process
-                program, program_args, parts = _simulate, (*statics, *args), None
+                program, program_args, parts = _simulate_jit, (*statics, *args), None
             else:
-                program = jax.jit(functools.partial(_simulate, *statics))
+                program = jax.jit(functools.partial(_simulate, *statics), compiler_options=ONE_SHOT)
                 program_args, parts = args, {"program": "demos._simulate", "parts": cache_parts}
-            compiled = compile_cache.compile_traced(program, program_args, parts, None, on_traced)
+            compiled = compile_cache.compile_traced(
+                program, program_args, parts, ONE_SHOT, on_traced
+            )
             compile_s = time.perf_counter() - t0
         trials = _Trials(*(np.asarray(a) for a in jax.device_get(compiled(*args))))
         checks = _checks(trials, settings)

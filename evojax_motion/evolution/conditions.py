@@ -25,12 +25,14 @@ metrics measures how far evolved motions drift from it.
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import ONE_SHOT
 from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, compile_interpolation
 from evojax_motion.errors import UserError
@@ -140,13 +142,15 @@ def condition_programs(
 
     # Jitted stages around the data-dependent choices (eager PCA is ~100x slower); the data are
     # arguments, not constants, so that a later run with other demonstrations reuses them.
-    @jax.jit
+    one_shot_jit = functools.partial(jax.jit, compiler_options=ONE_SHOT)  # run once a run
+
+    @one_shot_jit
     def candidates(key, lo, hi, condition, human):
         cand = jax.random.uniform(key, (n_cand, 3), condition.dtype, lo, hi)
         nb = select_neighbours(condition, human, cand, basis.neighbours, basis.radius, basis.w_pos)
         return cand, nb
 
-    @jax.jit
+    @one_shot_jit
     @exact_matmuls
     def reach(cand, nb, q):
         final = q[nb.index, -1]  # (m, k, J) the neighbours' final postures
@@ -155,7 +159,7 @@ def condition_programs(
             dyn, cand, final[:, 0], lower, upper, q_pref=masked_row_mean(final, nb.mask)
         )
 
-    @jax.jit
+    @one_shot_jit
     @exact_matmuls
     def finish(target, nb, qf, ik_error, q, duration):
         j = q.shape[-1]
@@ -181,9 +185,9 @@ def condition_programs(
         )
 
     return ConditionPrograms(
-        candidates=traced_program(candidates, cache_parts),
-        reach=traced_program(reach, cache_parts),
-        finish=traced_program(finish, cache_parts),
+        candidates=traced_program(candidates, cache_parts, ONE_SHOT),
+        reach=traced_program(reach, cache_parts, ONE_SHOT),
+        finish=traced_program(finish, cache_parts, ONE_SHOT),
         conditions=m,
     )
 

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import ONE_SHOT
 from evojax_motion.compiler.optimisation import LIMIT_TOL
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.database import Database
@@ -49,7 +50,7 @@ def _peaks(dyn: Dynamics, q, duration):
     return jax.vmap(one)(q, duration)
 
 
-_peaks_jit = jax.jit(_peaks, static_argnums=0)
+_peaks_jit = jax.jit(_peaks, static_argnums=0, compiler_options=ONE_SHOT)
 
 
 def row_peaks(db: Database, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:

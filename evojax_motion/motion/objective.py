@@ -9,12 +9,14 @@ N m): the time average of ``|tau_j|`` summed over the joints, ``sum_j (1/D) int 
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import ONE_SHOT
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
@@ -59,13 +61,13 @@ class CostProgram:
             tau = trajectory_torques(dyn, grid, q, d)
             return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
 
-        @jax.jit
+        @functools.partial(jax.jit, compiler_options=ONE_SHOT)  # run a few times a run
         @exact_matmuls
         def trajectory_costs(q, d):
             return jax.vmap(one)(q, d)
 
         self.rows = rows
-        self._batch = traced_program(trajectory_costs, cache)
+        self._batch = traced_program(trajectory_costs, cache, ONE_SHOT)
 
     def precompile(self, samples: int, joints: int) -> None:
         f32 = np.dtype(np.float32)

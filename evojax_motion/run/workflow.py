@@ -160,8 +160,11 @@ def kept_demonstrations(cache: Any):
 
 
 def synthesises(cfg: Config, robot: Robot) -> bool:
-    """Whether `demonstrations` will synthesise (no ``demos_file``, none kept for ``cfg``)."""
-    if cfg.demos_file is not None:
+    """Whether `demonstrations` will synthesise (no ``demos_file``, none shipped or kept for
+    ``cfg``)."""
+    from evojax_motion.demonstrations.shipped import shipped_path
+
+    if cfg.demos_file is not None or shipped_path(cfg, robot).is_file():
         return False
     path = kept_demonstrations(cache_parts(cfg, robot))
     return path is None or not path.is_file()
@@ -183,16 +186,20 @@ def demonstrations(
     cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None, on_traced=None, costs=None
 ) -> tuple[Database, DatabaseMeta]:
     """``(db, meta)`` of `build_demonstrations` for the config's ``robot`` and ``dyn``, without
-    the summary: the valid human rows only. ``cache``: `cache_parts` of ``cfg``, to keep the
+    the summary: the valid human rows only; those shipped for the config where there are
+    (`demonstrations.shipped`). ``cache``: `cache_parts` of ``cfg``, to keep the
     synthesis's traced program and its result across processes while the compilation cache is
     on (`run.cache.result_path`; None: synthesised and compiled in this process only).
     ``on_traced``, ``costs``: see `demonstrations.synthetic.generate_demonstrations` (only where
     they are
     synthesised)."""
-    from evojax_motion.demonstrations.synthetic import generate_demonstrations
+    from evojax_motion.demonstrations.shipped import shipped_demonstrations
 
     if cfg.demos_file is not None:
         return read_demonstrations_file(cfg, robot)
+    shipped = shipped_demonstrations(cfg, robot)
+    if shipped is not None:
+        return shipped
     path = kept_demonstrations(cache)
     if path is not None and path.is_file():
         try:
@@ -200,16 +207,26 @@ def demonstrations(
         except UserError as e:  # damaged: synthesise again (the result is the same)
             print(f"warning: cached demonstrations unreadable ({e}); synthesising", file=sys.stderr)
             path.unlink(missing_ok=True)
-    key = jax.random.key(cfg.demos.seed)
-    db, report = generate_demonstrations(robot, dyn, cfg.demos, key, cache, on_traced, costs)
-    description = str(report.get("description", "synthetic human-like demonstrations"))
-    meta = DatabaseMeta.of_robot(robot, synthetic=True, description=description)
+    db, meta = synthesise(cfg, robot, dyn, cache, on_traced, costs)
     if path is not None:
         try:
             save_database(path, db, meta)
         except OSError as e:  # a read-only cache: synthesised again next time
             print(f"warning: {path}: demonstrations not cached ({e})", file=sys.stderr)
     return db, meta
+
+
+def synthesise(
+    cfg: Config, robot: Robot, dyn: Dynamics, cache: Any = None, on_traced=None, costs=None
+) -> tuple[Database, DatabaseMeta]:
+    """``(db, meta)``: the synthetic demonstrations of ``cfg`` (`demonstrations`' arguments),
+    synthesised here."""
+    from evojax_motion.demonstrations.synthetic import generate_demonstrations
+
+    key = jax.random.key(cfg.demos.seed)
+    db, report = generate_demonstrations(robot, dyn, cfg.demos, key, cache, on_traced, costs)
+    description = str(report.get("description", "synthetic human-like demonstrations"))
+    return db, DatabaseMeta.of_robot(robot, synthetic=True, description=description)
 
 
 def print_demo_summary(report: dict, path: Path | None = None) -> None:

@@ -364,7 +364,10 @@ def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsy
     from evojax_motion.run import workflow
     from evojax_motion.settings import load_config
 
-    cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml")
+    # another seed than tiny.yaml's: none shipped (`demonstrations.shipped`)
+    cfg = load_config(
+        Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml", overrides=["demos.seed=1"]
+    )
     robot, dyn = workflow.make_robot_dynamics(cfg)
     parts = workflow.cache_parts(cfg, robot)
     kept = compile_cache.result_path({"result": "demonstrations", "parts": parts})
