@@ -223,8 +223,10 @@ def test_a_run_whose_process_1_was_killed_resumes_to_the_same_database(runs, tmp
     _, two, _ = runs
     out = tmp_path / "killed"
     launch = _distributed(tmp_path, out, kill_after={1: KILL_AFTER_CHECKPOINT})
-    launch.procs[1].wait(timeout=TIMEOUT_S)
-    launch.kill()
+    try:
+        launch.procs[1].wait(timeout=TIMEOUT_S)
+    finally:
+        launch.kill()
     (status0, _, _), (status1, output1, writes1) = launch.wait()
     assert status1 == -9, output1[-4000:]
     assert status0 == -9
