@@ -77,9 +77,21 @@ NOT_RUN: dict[str, str] = {
     "evojax-motion report RUN_DIR [--out DIR] [--condition C] [--joint NAME]": (
         "a usage synopsis (placeholders); README's `evojax-motion report runs/demo` runs it"
     ),
-    "srun --nodes=2 --ntasks-per-node=1 --gpus-per-node=8 python my_run.py": (
-        "a SLURM launch on 2 GPU hosts of the user's own script"
+    **dict.fromkeys(
+        (
+            f"JAX_COORDINATOR_ADDRESS=127.0.0.1:12345 EVOJAX_NUM_PROCESSES=2 EVOJAX_PROCESS_ID={i} "
+            f"CUDA_VISIBLE_DEVICES={i} evojax-motion train configs/catch_ball.yaml "
+            "--out runs/catch --distributed &"
+            for i in (0, 1)
+        ),
+        "one process per GPU on a host with 2 GPUs, at the paper's scale; tests/run/"
+        "test_distributed.py launches train --distributed as 2 processes of 2 CPU devices",
     ),
+    "srun --nodes=2 --ntasks-per-node=8 --gpus-per-node=8 evojax-motion train "
+    "configs/catch_ball.yaml --out runs/catch --distributed": "a SLURM launch on 2 GPU hosts",
+    "JAX_COORDINATOR_ADDRESS=host0:12345 EVOJAX_NUM_PROCESSES=16 EVOJAX_PROCESS_ID=8 "
+    "CUDA_VISIBLE_DEVICES=0 evojax-motion train configs/catch_ball.yaml --out runs/catch "
+    "--distributed": "one process of a 16-GPU run on 2 hosts",
     f"{SHARDED} --tag h200x2": "a benchmark for several GPUs (minutes per point)",
     f"{SHARDED} --config configs/demo_small.yaml --generations 2 --sweep-conditions 10000 "
     "--devices 1,2 --tag h200x2_small": "a benchmark for several GPUs (minutes per point)",

@@ -46,6 +46,10 @@ def _cmd_demos(args) -> int:
 
 
 def _cmd_train(args) -> int:
+    if args.distributed:  # before anything else touches JAX
+        from evojax_motion.evolution.sharding import initialize_distributed
+
+        initialize_distributed()
     from evojax_motion.run.cache import enable_compile_cache
     from evojax_motion.run.training import run_training
     from evojax_motion.settings import load_config
@@ -75,6 +79,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", help="YAML config, e.g. configs/catch_ball.yaml")
     p.add_argument("--out", required=True, help="run directory")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument(
+        "--distributed",
+        action="store_true",
+        help="one of several processes of one run (jax.distributed; SLURM and Open MPI are "
+        "detected, else set JAX_COORDINATOR_ADDRESS, EVOJAX_NUM_PROCESSES, EVOJAX_PROCESS_ID; "
+        "docs/scaling.md)",
+    )
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_train)

@@ -314,6 +314,12 @@ def sharded_generation_step(
     return jitted, options
 
 
+# The variables that name a plain launch's processes (`initialize_distributed`); JAX reads the
+# first itself. Under SLURM or Open MPI, JAX finds all three in the launcher's own variables.
+COORDINATOR_ENV = "JAX_COORDINATOR_ADDRESS"  # "host:port" of process 0
+NUM_PROCESSES_ENV, PROCESS_ID_ENV = "EVOJAX_NUM_PROCESSES", "EVOJAX_PROCESS_ID"
+
+
 def initialize_distributed(
     coordinator_address: str | None = None,
     num_processes: int | None = None,
@@ -325,6 +331,8 @@ def initialize_distributed(
     give ``coordinator_address`` ("host:port" of process 0), ``num_processes`` and ``process_id``,
     or set ``JAX_COORDINATOR_ADDRESS``, ``EVOJAX_NUM_PROCESSES`` and ``EVOJAX_PROCESS_ID``.
     Returns this process's index, the process count, and the local and global device counts.
+    Raises `UserError` (one line, naming the variables not set) where a setting is missing or
+    wrong.
     """
     import os
 
@@ -336,11 +344,23 @@ def initialize_distributed(
             raise UserError(f"{name}: expected a non-negative integer, got {raw!r}")
         return int(raw)
 
-    jax.distributed.initialize(
-        coordinator_address,
-        from_env(num_processes, "EVOJAX_NUM_PROCESSES"),
-        from_env(process_id, "EVOJAX_PROCESS_ID"),
-    )
+    given = {
+        COORDINATOR_ENV: coordinator_address or os.environ.get(COORDINATOR_ENV) or None,
+        NUM_PROCESSES_ENV: from_env(num_processes, NUM_PROCESSES_ENV),
+        PROCESS_ID_ENV: from_env(process_id, PROCESS_ID_ENV),
+    }
+    try:
+        jax.distributed.initialize(*given.values())
+    except (ValueError, TypeError) as e:  # a setting JAX found neither given nor detected
+        unset = [name for name, value in given.items() if value is None]
+        hint = (
+            f"set {', '.join(unset)} (or launch under SLURM or Open MPI)"
+            if unset
+            else f"check {', '.join(given)}"
+        )
+        lines = str(e).strip().splitlines()
+        reason = lines[0].rstrip(".") if lines else type(e).__name__
+        raise UserError(f"jax.distributed.initialize: {reason}; {hint}") from None
     return {
         "process_index": jax.process_index(),
         "process_count": jax.process_count(),

@@ -23,6 +23,10 @@ resumed run recomputes exactly what an uninterrupted one would: the final databa
 for bit. Every file is written atomically (temporary file + ``os.replace``), so a run stopped by
 a full disk, like a killed one, resumes. While a run is going, ``.lock`` names its process and a
 second run of the folder is refused (`run_lock`).
+
+A run can span several processes (``train --distributed``, docs/scaling.md): each computes every
+generation on its share of the conditions; process 0 alone takes the lock and writes the files
+above, orbax's checkpoints included (`run.processes`).
 """
 
 from __future__ import annotations
@@ -44,6 +48,8 @@ from evojax_motion.run import compilation
 if TYPE_CHECKING:
     from evojax_motion.settings import Config
 
+# What the processes of one run must agree on (`run.processes.check_same`)
+SHARED_FOLDER = "view of the run folder (it must be on a file system that all processes share)"
 CONDITIONS_STREAM = 1  # fold_in index of the condition set's key (seed -> streams)
 CONFIG_FILE, ROBOT_FILE, METRICS_FILE = "config.yaml", "robot.xml", "metrics.jsonl"
 CHECKPOINT_DIR, PLOT_DIR, SUMMARY_FILE = "checkpoints", "plots", "summary.json"
@@ -254,20 +260,55 @@ def initial_state(
     return db, conditions, meta, baseline, timings
 
 
+def shared_initial_state(
+    cfg: Config, robot, dyn, setup: compilation.SetupPrograms | None = None, on_traced=None
+):
+    """`initial_state` (same arguments and result) made by process 0 and sent to the others;
+    ``meta``, ``baseline`` and ``timings`` are process 0's to write (None, {}, {} elsewhere).
+
+    The step's replicated inputs must be the same bits on every process (docs/scaling.md). The
+    others wait rather than make the state too: JAX's persistent cache is written by process 0
+    only, so they would compile its programs again in every run. They receive it into arrays
+    shaped as `run.compilation.expected_inputs`; where process 0's differ (a non-finite
+    demonstration dropped), they make the state themselves, then take process 0's bits. With one
+    process: `initial_state`.
+    """
+    from evojax_motion.evolution.sharding import same_on_every_process
+    from evojax_motion.run import processes
+    from evojax_motion.run.cache import signature
+
+    args = (cfg, robot, dyn, setup, on_traced)
+    primary = processes.is_primary()
+    made = processes.together(lambda: initial_state(*args) if primary else None)
+    inputs = made[:2] if made is not None else compilation.expected_inputs(cfg, robot)
+    if processes.first_different(repr(None if inputs is None else signature(inputs))) is not None:
+        made = made or initial_state(*args)
+        inputs = made[:2]
+    db, conditions = same_on_every_process(inputs)
+    meta, baseline, timings = (None, {}, {}) if made is None else made[2:]
+    return db, conditions, meta, baseline, timings
+
+
 def _restore(out: Path, manager, cfg: Config, robot):
     """The newest usable checkpoint of the run in ``out`` (or None), with the problems met.
 
     Damaged steps newer than the one restored are deleted (new saves would collide with them).
+    Every process of a run restores the same step (`run.processes.check_same`; the checksum
+    vouches for its bits).
     """
     from evojax_motion.motion.database import load_database
     from evojax_motion.run import checkpoint as ck
+    from evojax_motion.run.processes import check_same
     from evojax_motion.run.workflow import check_database_matches_robot
 
-    if not ((out / DB_INITIAL).is_file() and manager.all_steps()):
+    steps = manager.all_steps()  # every process restores (orbax): they must see the same steps
+    check_same(repr(((out / DB_INITIAL).is_file(), steps)), SHARED_FOLDER)
+    if not ((out / DB_INITIAL).is_file() and steps):
         return None, []
     db_init, meta = load_database(out / DB_INITIAL)
     check_database_matches_robot(meta, robot, str(out / DB_INITIAL))
     restored, problems = ck.restore_latest(manager, checkpoint_template(cfg, db_init))
+    check_same(repr(None if restored is None else restored.step), SHARED_FOLDER)
     for p in problems:
         log(f"warning: {p}")
     if restored is None:
@@ -306,22 +347,37 @@ def run_training(
     `check_run_dir`) or in use by another run (`run_lock`), the demonstrations cannot be read or
     the condition set cannot be drawn; ``OSError`` naming the file or folder where the file
     system refuses a write (the run then resumes once there is room: files are atomic).
+
+    After ``jax.distributed.initialize`` (`evolution.sharding.initialize_distributed`), every
+    process of the run calls it alike: the conditions are sharded over all their devices,
+    process 0's initial state is everyone's, and process 0 alone writes files and prints
+    (`run.processes`); where the processes differ in ``cfg`` or ``resume``, every one raises
+    ``UserError``.
     """
     import jax
 
+    from evojax_motion.run import processes
     from evojax_motion.run.lock import hold_run_folder
+    from evojax_motion.settings import config_to_yaml
 
     out = Path(out_dir)
     _refuse_a_file(out)  # before the lock, which makes the folder
-    # On GPUs float32 matrix products default to TF32 (10-bit mantissa); the time grid's
-    # derivative operators would lose accelerations to it. Full precision, scoped to the run.
-    with hold_run_folder(out), jax.default_matmul_precision("highest"):
-        return _run_training(cfg, out, resume, progress)
+    processes.check_same(config_to_yaml(cfg) + f"resume: {resume}\n", "config or --resume")
+    with contextlib.ExitStack() as stack:
+        # process 0 alone holds the lock; a refusal stops every process
+        primary = processes.is_primary()
+        processes.together(lambda: primary and stack.enter_context(hold_run_folder(out)))
+        stack.enter_context(processes.quiet_unless_primary())
+        # On GPUs float32 matrix products default to TF32 (10-bit mantissa); the time grid's
+        # derivative operators would lose accelerations to it. Full precision, scoped to the run.
+        stack.enter_context(jax.default_matmul_precision("highest"))
+        return _run_training(cfg, out, resume, progress and primary)
 
 
 def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     import jax
 
+    from evojax_motion.run import processes
     from evojax_motion.run.cache import signature
     from evojax_motion.run.workflow import (
         check_run_memory,
@@ -334,14 +390,17 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     t_start = time.perf_counter()
     evo, tr = cfg.evolution, cfg.train
     check_settings(cfg)
-    resume = check_run_dir(out, config_to_dict(cfg), resume)
+    processes.check_devices(cfg.parallel.devices)
+    resume = processes.together(lambda: check_run_dir(out, config_to_dict(cfg), resume))
     robot, dyn = make_robot_dynamics(cfg)
     check_run_memory(cfg, robot)  # sizes that cannot fit: refused before any work
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
+    processes.check_same(repr(resuming), SHARED_FOLDER)
+    primary = processes.is_primary()  # writes the files; the others compute and checkpoint
     # A new run compiles its step and setup programs in background threads: from now on, or,
     # where the demonstrations are synthesised, once their synthesis is traced. (Nothing for a
     # demonstrations file that `initial_state` will refuse: `run.compilation.expected_sizes`.)
-    early = None if resuming else compilation.EarlyCompile(cfg, robot, dyn)
+    early = None if resuming or not primary else compilation.EarlyCompile(cfg, robot, dyn)
     if early is not None and not synthesises(cfg, robot):
         early.start()
     try:
@@ -365,26 +424,32 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             baseline = dict(restored.meta.get("baseline", {}))
         else:  # every UserError of the inputs is raised here, before anything is written
             setup, cue = (None, None) if early is None else (early.setup, early.start)
-            db, conditions, meta, baseline, timings = initial_state(cfg, robot, dyn, setup, cue)
+            made = shared_initial_state(cfg, robot, dyn, setup, cue)
+            db, conditions, meta, baseline, timings = made
             start, metrics = 0, []
-            log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
+            if primary:
+                log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
     except BaseException:
         if early is not None:
             early.wait()  # its thread ends before the error reaches the user
         raise
     early_step, waited = compilation.wait_for_step(early)
 
-    out.mkdir(parents=True, exist_ok=True)
-    for leftover in _temporaries(out):  # of a run killed in the middle of a write
-        leftover.unlink(missing_ok=True)
-    ck.atomic_write_text(out / CONFIG_FILE, config_to_yaml(cfg))
-    ck.atomic_write_text(out / ROBOT_FILE, robot.mjcf)
+    if primary:
+        out.mkdir(parents=True, exist_ok=True)
+        for leftover in _temporaries(out):  # of a run killed in the middle of a write
+            leftover.unlink(missing_ok=True)
+        ck.atomic_write_text(out / CONFIG_FILE, config_to_yaml(cfg))
+        ck.atomic_write_text(out / ROBOT_FILE, robot.mjcf)
+    # Checkpoints: every process calls orbax alike (it synchronises them; process 0 writes).
     if manager is None:
         manager = ck.open_manager(out / CHECKPOINT_DIR, tr.max_to_keep)
     if restored is None:
-        save_database(out / DB_INITIAL, db, meta)
+        if primary:
+            save_database(out / DB_INITIAL, db, meta)
         ck.save_checkpoint(manager, 0, _state_tree(db, conditions, 0), _meta([], baseline))
-    ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
+    if primary:
+        ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
 
     t0 = time.perf_counter()
     if start < evo.generations:  # ahead of time, so that "seconds" per generation is execution
@@ -437,12 +502,13 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             t0 = now
             row.update({k: _json_value(v) for k, v in stats._asdict().items()})
             metrics.append(row)
-            if g == 1:  # kept for Fig. 8 (first vs last generation); written before checkpoint 1
+            if g == 1 and primary:  # kept for Fig. 8 (first vs last); written before checkpoint 1
                 save_database(out / DB_GEN1, db, meta)
             if g % tr.checkpoint_every == 0 or g == evo.generations:
                 tree, meta_g = _state_tree(db, conditions, g), _meta(metrics, baseline)
                 ck.save_checkpoint(manager, g, tree, meta_g)
-            ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
+            if primary:
+                ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
             bar.update(1)
             bar.set_postfix(
                 cost=_fmt(row["db_cost_mean"]),
@@ -454,15 +520,18 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         bar.close()
         manager.close()
 
-    save_database(out / DB_FINAL, db, meta)
     plot_paths = []
-    if tr.plots:
-        plot_paths = _write_plots(out, cfg, robot, db, conditions, metrics, baseline)
+    if primary:
+        save_database(out / DB_FINAL, db, meta)
+        if tr.plots:
+            plot_paths = _write_plots(out, cfg, robot, db, conditions, metrics, baseline)
     timings["total_seconds"] = time.perf_counter() - t_start
     summary = _summary(out, metrics, baseline, timings, plot_paths)
     summary["checkpoint_problems"] = problems
     summary["resumed_from"] = None if restored is None else int(restored.step)
-    ck.atomic_write_text(out / SUMMARY_FILE, json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    if primary:
+        text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
+        ck.atomic_write_text(out / SUMMARY_FILE, text)
     print_summary(summary)
     return summary
 

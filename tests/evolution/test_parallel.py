@@ -14,21 +14,16 @@ whole neighbours).
 from __future__ import annotations
 
 import json
-import os
-import socket
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
 N_DEVICES = 4  # forced CPU devices of the subprocess
 N_HUMAN, T_SAMPLES, M_COND = 30, 16, 5  # m = 5 on 4 devices: 3 padded, one device all padding
 TOL_Q_F64 = 1e-9  # [rad] sharded vs one-device survivors, float64
 TOL_COST_REL_F64 = 1e-9  # relative, eq. 5 cost of the survivors and the mean statistics, float64
-CPU_POOL_THREADS = 32  # PJRT_NPROC of the subprocesses (see `_env`)
 COLLECTIVES = ("all-gather", "all-reduce", "all-to-all", "collective-permute", "reduce-scatter")
 
 
@@ -183,20 +178,6 @@ def test_combine_stats_weights_by_offspring_past_every_rejection():
 # ------------------------------------------ sharded vs one device, 4 forced CPU devices
 
 
-def _env(devices_per_process: int) -> dict:
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices_per_process}"
-    ).strip()
-    env.update(JAX_PLATFORMS="cpu", JAX_ENABLE_X64="1", JAX_CPU_COLLECTIVES_IMPLEMENTATION="gloo")
-    # XLA:CPU runs a device's ready collectives on its shared thread pool (one thread per core),
-    # where they block until every device arrives; with more devices than cores the other
-    # devices' work can starve and the step deadlocks now and then. More pool threads avoid it.
-    env.setdefault("PJRT_NPROC", str(CPU_POOL_THREADS))
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    return env
-
-
 def _last_json(res) -> dict:
     assert res.returncode == 0, res.stderr[-4000:]
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -204,8 +185,11 @@ def _last_json(res) -> dict:
 
 @pytest.fixture(scope="module")
 def sharded_run():
+    from multiprocess_support import cpu_devices_env  # (not in the subprocess: no tests/ there)
+
     cmd = [sys.executable, __file__, "single"]
-    res = subprocess.run(cmd, env=_env(N_DEVICES), capture_output=True, text=True, timeout=600)
+    env = cpu_devices_env(N_DEVICES, x64=True)
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     return _last_json(res)
 
 
@@ -258,20 +242,17 @@ def test_two_processes_give_the_same_database(sharded_run):
     collectives, localhost) take process 0's inputs (`same_on_every_process`; process 1 starts
     from a perturbed copy) and run the same 4-way sharded step on them; both read back the
     database of the single-process 4-device run, bit for bit."""
-    with socket.socket() as sock:  # a free port for the coordinator
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    env = _env(N_DEVICES // 2)
-    env.update(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", EVOJAX_NUM_PROCESSES="2")
+    from multiprocess_support import process_envs
+
     procs = [
         subprocess.Popen(
             [sys.executable, __file__, "multihost"],
-            env={**env, "EVOJAX_PROCESS_ID": str(i)},
+            env=env,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
         )
-        for i in range(2)
+        for env in process_envs(2, N_DEVICES // 2, x64=True)
     ]
     outs = []
     for proc in procs:
