@@ -76,3 +76,39 @@ def test_affected_releases_are_the_ones_with_split_batches(monkeypatch):
     for other in ((0, 9, 2), (0, 11, 2)):
         monkeypatch.setattr(jaxlib.version, "__version_info__", other)
         assert not lapack.one_matrix_at_a_time()
+
+
+@pytest.fixture
+def chunks_of_four(monkeypatch):
+    """The GPU's chunked path (`lapack.batch_limit`) with a limit of 4 matrices, on any backend."""
+    monkeypatch.setattr(lapack, "one_matrix_at_a_time", lambda: False)
+    monkeypatch.setattr(lapack, "batch_limit", lambda: 4)
+
+
+def test_chunked_calls_equal_the_batched_call(chunks_of_four):
+    """Batches past the limit, from leading axes and from nested vmap (2 x 3 = 6 matrices, and
+    5): every batch axis is folded into one and solved in chunks, bit-identical to the batched
+    call (the same routine per matrix), the padding dropped."""
+    a = _matrices(2, 3, 6, 4)
+    u, s, vt = jax.jit(lambda m: _batched_svd(m))(a)  # a new function: traced anew
+    for got, want in zip((u, s, vt), jnp.linalg.svd(a, full_matrices=False), strict=True):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    five = _matrices(5, 6, 4)
+    (w1, v1), (w2, v2) = jax.jit(lambda m: _batched_eigh(m))(five)
+    w_ref, v_ref = jnp.linalg.eigh(five @ jnp.swapaxes(five, -1, -2))
+    for got in ((w1, v1), (w2, v2)):
+        np.testing.assert_array_equal(np.asarray(got[0]), np.asarray(w_ref))
+        np.testing.assert_array_equal(np.asarray(got[1]), np.asarray(v_ref))
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="LAPACK custom calls are CPU's")
+def test_chunked_calls_take_at_most_the_limit(chunks_of_four):
+    """The 6 matrices go in two equal chunks of 3 (the limit is 4), while the
+    plain batched call gets all 6: the check can fail."""
+    a = _matrices(2, 3, 6, 4)
+    chunked = _lapack_batches(jax.jit(lambda m: _batched_svd(m)).lower(a).as_text())
+    plain = _lapack_batches(
+        jax.jit(lambda m: jnp.linalg.svd(m, full_matrices=False)).lower(a).as_text()
+    )
+    assert chunked and all(t.startswith("tensor<3x6x4") for t in chunked), chunked  # 2 x 3
+    assert any(t.startswith("tensor<2x3x6x4") or t.startswith("tensor<6x6x4") for t in plain), plain
