@@ -4,19 +4,34 @@ XLA compiles every program with its full optimisation pipeline unless told other
 that run once per process - the synthesis of demonstrations, drawing the condition set, the human
 costs, the limit counts, one ``generate`` or ``catch`` query of the command line - pay that
 compile on every cold start and gain little from it. `ONE_SHOT` sets XLA's backend (LLVM)
-optimisation level to 0 for them. Measured on 2 CPU cores (`benchmarks/cold_start.py`,
-CHANGELOG.md): the catcher's compile 10.3 -> 3.9 s for 1.6 -> 3.4 ms a call; drawing the paper
-configuration's conditions 8.1 -> 1.5 s. The generation step and the programs that answer many
-queries (benchmarks, an online generator kept in a notebook) keep the full level: at level 0 a
-generation on the CPU took 3.3x as long.
+optimisation level to 0 for them on the CPU backend. Measured on 2 CPU cores
+(`benchmarks/cold_start.py`, CHANGELOG.md): the catcher's compile 10.3 -> 3.9 s for 1.6 -> 3.4 ms
+a call; drawing the paper configuration's conditions 8.1 -> 1.5 s. The generation step and the
+programs that answer many queries (benchmarks, an online generator kept in a notebook) keep the
+full level: at level 0 a generation on the CPU took 3.3x as long. GPUs keep the full level: on
+one H200 the setting did not shorten the compile that dominates there (the generation step's).
 """
 
 from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import jax
 
 ONE_SHOT: dict = {"xla_backend_optimization_level": 0}
 
 
 def one_shot(options: dict | None = None, enabled: bool = True) -> dict | None:
-    """``options`` (jit ``compiler_options``; None: none) with `ONE_SHOT`'s where ``enabled``,
-    else unchanged."""
-    return {**(options or {}), **ONE_SHOT} if enabled else options
+    """jit ``compiler_options`` for a program that runs once: ``options`` (None: none) with
+    `ONE_SHOT`'s where ``enabled`` and the default backend is the CPU, else ``options``.
+    Reads the backend: call it when the program is made, not at import."""
+    if not enabled or jax.default_backend() != "cpu":
+        return options
+    return {**(options or {}), **ONE_SHOT}
+
+
+def one_shot_jit(fn: Callable, **jit_kwargs) -> Callable[[], Callable]:
+    """A factory of ``jax.jit(fn, compiler_options=one_shot(), **jit_kwargs)``, made at its first
+    call and kept: for module-level programs (the backend is not known at import)."""
+    return functools.cache(lambda: jax.jit(fn, compiler_options=one_shot(), **jit_kwargs))

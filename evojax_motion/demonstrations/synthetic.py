@@ -57,7 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import ONE_SHOT
+from evojax_motion.compile_options import one_shot, one_shot_jit
 from evojax_motion.demonstrations.shaping import (
     HALTON_BASES,
     halton,
@@ -160,13 +160,15 @@ class _Robot(NamedTuple):
     velocity_limit: _Array
 
 
-@functools.partial(jax.jit, static_argnames="rounds", compiler_options=ONE_SHOT)
 def _shift_and_round_keys(key, rounds: int):
     """The Halton shift ``(len(HALTON_BASES),)`` and one key per round ``(rounds,)``, from the
     two halves of ``key`` (one program: op by op, each would compile on its own)."""
     k_shift, k_rounds = jax.random.split(key)
     shift = jax.random.uniform(k_shift, (len(HALTON_BASES),))
     return shift, jax.vmap(functools.partial(jax.random.fold_in, k_rounds))(jnp.arange(rounds))
+
+
+_shift_and_round_keys_program = one_shot_jit(_shift_and_round_keys, static_argnames="rounds")
 
 
 @exact_matmuls
@@ -275,9 +277,7 @@ class _Checks(NamedTuple):
         )
 
 
-_simulate_jit = jax.jit(
-    _simulate, static_argnames=("dyn", "samples", "ik_iters"), compiler_options=ONE_SHOT
-)
+_simulate_program = one_shot_jit(_simulate, static_argnames=("dyn", "samples", "ik_iters"))
 
 
 def _checks(trials: _Trials, settings: DemoSettings) -> _Checks:
@@ -374,7 +374,7 @@ def generate_demonstrations(
     key = jax.random.key(settings.seed) if key is None else key
     res = resolve_settings(robot, settings)
     dtype = np.dtype(dyn.dtype)
-    shift, round_keys = _shift_and_round_keys(key, settings.max_rounds)
+    shift, round_keys = _shift_and_round_keys_program()(key, settings.max_rounds)
     shift = np.asarray(shift, np.float64)
     pool = math.ceil(settings.count * settings.oversample)
     prm = _Params.of(settings, dtype)
@@ -398,13 +398,14 @@ def generate_demonstrations(
             t0 = time.perf_counter()
             statics = (dyn, settings.samples, settings.ik_iters)
             program_args: tuple
+            options = one_shot()
             if cache_parts is None:  # `_simulate`'s own jit: traced once per process
-                program, program_args, parts = _simulate_jit, (*statics, *args), None
+                program, program_args, parts = _simulate_program(), (*statics, *args), None
             else:
-                program = jax.jit(functools.partial(_simulate, *statics), compiler_options=ONE_SHOT)
+                program = jax.jit(functools.partial(_simulate, *statics), compiler_options=options)
                 program_args, parts = args, {"program": "demos._simulate", "parts": cache_parts}
             compiled = compile_cache.compile_traced(
-                program, program_args, parts, ONE_SHOT, on_traced
+                program, program_args, parts, options, on_traced
             )
             compile_s = time.perf_counter() - t0
         trials = _Trials(*(np.asarray(a) for a in jax.device_get(compiled(*args))))

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import ONE_SHOT
+from evojax_motion.compile_options import one_shot
 from evojax_motion.compiler.basis import pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import Boundary, compile_interpolation
 from evojax_motion.errors import UserError
@@ -142,7 +142,8 @@ def condition_programs(
 
     # Jitted stages around the data-dependent choices (eager PCA is ~100x slower); the data are
     # arguments, not constants, so that a later run with other demonstrations reuses them.
-    one_shot_jit = functools.partial(jax.jit, compiler_options=ONE_SHOT)  # run once a run
+    options = one_shot()  # run once a run
+    one_shot_jit = functools.partial(jax.jit, compiler_options=options)
 
     @one_shot_jit
     def candidates(key, lo, hi, condition, human):
@@ -185,9 +186,9 @@ def condition_programs(
         )
 
     return ConditionPrograms(
-        candidates=traced_program(candidates, cache_parts, ONE_SHOT),
-        reach=traced_program(reach, cache_parts, ONE_SHOT),
-        finish=traced_program(finish, cache_parts, ONE_SHOT),
+        candidates=traced_program(candidates, cache_parts, options),
+        reach=traced_program(reach, cache_parts, options),
+        finish=traced_program(finish, cache_parts, options),
         conditions=m,
     )
 

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import ONE_SHOT
+from evojax_motion.compile_options import one_shot_jit
 from evojax_motion.compiler.optimisation import LIMIT_TOL
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.database import Database
@@ -50,7 +50,7 @@ def _peaks(dyn: Dynamics, q, duration):
     return jax.vmap(one)(q, duration)
 
 
-_peaks_jit = jax.jit(_peaks, static_argnums=0, compiler_options=ONE_SHOT)
+_peaks_program = one_shot_jit(_peaks, static_argnums=0)
 
 
 def row_peaks(db: Database, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
@@ -66,7 +66,7 @@ def row_peaks(db: Database, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
         if pad:  # resting rows: the last row repeated, dropped below
             qc = np.concatenate([qc, np.repeat(qc[-1:], pad, axis=0)])
             dc = np.concatenate([dc, np.repeat(dc[-1:], pad, axis=0)])
-        pqd, ptau = _peaks_jit(dyn, qc, dc)
+        pqd, ptau = _peaks_program()(dyn, qc, dc)
         keep = qc.shape[0] - pad
         out_qd.append(np.asarray(pqd, np.float64)[:keep])
         out_tau.append(np.asarray(ptau, np.float64)[:keep])

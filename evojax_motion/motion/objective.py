@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import ONE_SHOT
+from evojax_motion.compile_options import one_shot
 from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
@@ -61,13 +61,15 @@ class CostProgram:
             tau = trajectory_torques(dyn, grid, q, d)
             return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
 
-        @functools.partial(jax.jit, compiler_options=ONE_SHOT)  # run a few times a run
+        options = one_shot()  # run a few times a run
+
+        @functools.partial(jax.jit, compiler_options=options)
         @exact_matmuls
         def trajectory_costs(q, d):
             return jax.vmap(one)(q, d)
 
         self.rows = rows
-        self._batch = traced_program(trajectory_costs, cache, ONE_SHOT)
+        self._batch = traced_program(trajectory_costs, cache, options)
 
     def precompile(self, samples: int, joints: int) -> None:
         f32 = np.dtype(np.float32)

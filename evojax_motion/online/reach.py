@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import ONE_SHOT
+from evojax_motion.compile_options import one_shot
 from evojax_motion.compiler.basis import select_neighbours
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
@@ -161,7 +161,7 @@ def make_reach_checker(
     basis_settings, settings = resolve_settings(basis_settings, settings)
     lower, upper = joint_limits_f32(robot)
 
-    @functools.partial(jax.jit, compiler_options=ONE_SHOT)
+    @functools.partial(jax.jit, compiler_options=one_shot())
     @exact_matmuls
     def check(db, points):
         return reach_query(dyn, db, points, lower, upper, basis_settings, settings)[0]
