@@ -1,7 +1,7 @@
 """The shapes the synthetic demonstrations are built from (`demonstrations.synthetic`): catch
-points spread over the catch region (`halton`, `region_points`), the minimum-jerk progress
-(`minimum_jerk`), the shoulder-centred arc of a hand path (`shoulder_arc`), and the C2 cubic spline
-through the IK's nodes (`spline_matrix`, `spline_eval`).
+points spread over the catch region (`halton`, `region_points`), the shoulder-centred arc of a
+hand path (`shoulder_arc`), and the C2 cubic spline through the IK's nodes (`spline_matrix`,
+`spline_eval`); their minimum-jerk progress is `motion.profiles.minimum_jerk`.
 """
 
 from __future__ import annotations
@@ -38,11 +38,6 @@ def region_points(region: CatchRegion, centre, u) -> np.ndarray:
     el = np.arcsin(s0 + u[:, 2] * (s1 - s0))
     direction = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
     return np.asarray(centre)[None] + r[:, None] * direction
-
-
-def minimum_jerk(w):
-    """Flash & Hogan (1985) position profile ``10 w^3 - 15 w^4 + 6 w^5`` on [0, 1]."""
-    return w**3 * (10.0 - 15.0 * w + 6.0 * w**2)
 
 
 def spline_matrix(k: int, dtype) -> np.ndarray:

@@ -61,7 +61,6 @@ from evojax_motion.compile_options import one_shot, one_shot_jit
 from evojax_motion.demonstrations.shaping import (
     HALTON_BASES,
     halton,
-    minimum_jerk,
     region_points,
     shoulder_arc,
     spline_eval,
@@ -81,6 +80,7 @@ from evojax_motion.model.robot import Robot
 from evojax_motion.motion.angles import on_rest_branch
 from evojax_motion.motion.database import Database, human_mask, make_database
 from evojax_motion.motion.objective import CostProgram
+from evojax_motion.motion.profiles import minimum_jerk
 from evojax_motion.motion.timegrid import derivatives, make_time_grid
 from evojax_motion.run import cache as compile_cache
 from evojax_motion.settings.demonstrations import MAX_ASYMMETRY, DemoSettings

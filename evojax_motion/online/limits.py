@@ -50,6 +50,8 @@ from evojax_motion.compiler.interpolation import Boundary, basis_functions, solv
 from evojax_motion.linalg.cholesky import spd_solve
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.model.robot import Robot
+from evojax_motion.motion import profiles
+from evojax_motion.motion.profiles import rest_to_rest
 from evojax_motion.motion.timegrid import TimeGrid, derivatives
 from evojax_motion.settings.online import MAX_DURATION, OnlineSettings
 
@@ -63,9 +65,7 @@ def minimum_jerk(grid: TimeGrid, q0, qf) -> jnp.ndarray:
 
     Monotone between q0 and qf, so inside any box that holds both ends.
     """
-    s = jnp.asarray(grid.s, q0.dtype)
-    shape = s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
-    return q0[:, None, :] + (qf - q0)[:, None, :] * shape[None, :, None]
+    return rest_to_rest(profiles.minimum_jerk(jnp.asarray(grid.s, q0.dtype)), q0, qf)
 
 
 def _joint_projection(a, g, lo, hi, iters: int, penalty: float):
@@ -239,25 +239,12 @@ PLATEAU_RAMP = 0.3  # `plateau_path`'s share of the motion spent speeding up (an
 
 
 def plateau_path(grid: TimeGrid, q0, qf, ramp: float = PLATEAU_RAMP) -> jnp.ndarray:
-    """Rest-to-rest paths ``q0 (C, J) -> qf (C, J)`` at a speed plateau: ``(C, T, J)``.
-
-    On normalised time s the speed rises as ``3x^2 - 2x^3`` (x = s / ramp: zero acceleration at
-    the start, continuous acceleration), holds ``1 / (1 - ramp)`` of the mean speed, and falls
-    symmetrically. Its peak speed is ``1 / (1 - ramp)`` (1.43 at the default) times the mean,
-    against 1.875 for minimum jerk, at ``1.5 / (ramp (1 - ramp))`` (7.1) against 5.8 times the
-    mean acceleration. Monotone between q0 and qf, so inside any box that holds both ends.
+    """Rest-to-rest paths ``q0 (C, J) -> qf (C, J)`` at a speed plateau (`motion.profiles.plateau`):
+    ``(C, T, J)``. Peak speed ``1 / (1 - ramp)`` (1.43 at the default) times the mean, against
+    1.875 for minimum jerk, at ``1.5 / (ramp (1 - ramp))`` (7.1) against 5.8 times the mean
+    acceleration. Monotone between q0 and qf, so inside any box that holds both ends.
     """
-    s = jnp.asarray(grid.s, q0.dtype)
-    v = 1.0 / (1.0 - ramp)
-
-    def rise(u):  # distance covered while speeding up for normalised time u in [0, ramp]
-        x = u / ramp
-        return v * ramp * (x**3 - 0.5 * x**4)
-
-    head = rise(jnp.minimum(s, ramp)) + v * jnp.clip(s - ramp, 0.0, 1.0 - 2.0 * ramp)
-    tail = 1.0 - rise(jnp.clip(1.0 - s, 0.0, ramp))
-    shape = jnp.where(s <= 1.0 - ramp, head, tail)
-    return q0[:, None, :] + (qf - q0)[:, None, :] * shape[None, :, None]
+    return rest_to_rest(profiles.plateau(jnp.asarray(grid.s, q0.dtype), ramp), q0, qf)
 
 
 def fit_speed(grid: TimeGrid, q, q0, qf, duration, vel_usable):
