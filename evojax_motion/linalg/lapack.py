@@ -72,7 +72,8 @@ def _serial(fn):
 def _chunked(fn):
     """``fn`` of a batch ``(b, m, n)``, over any leading batch axes and ``vmap``'s: every batch
     axis folded into one (a ``vmap`` of it folds its axis in and calls it again), then solved
-    at most ``batch_limit()`` matrices at a time, in equal chunks."""
+    at most ``batch_limit()`` matrices at a time, in equal chunks. Like `_serial`, not
+    differentiable (``custom_vmap``): the package differentiates through neither."""
 
     @jax.custom_batching.custom_vmap
     def flat(a):  # (b, m, n)
