@@ -183,12 +183,19 @@ def _limits_line(motion, i: int) -> str:
 def _session(path: str, mtime_ns: int, backend: str):
     """The loaded model and its jitted functions, kept per database file and version: repeated
     commands in one process (tests, notebooks) do not recompile."""
-    from evojax_motion.online.generation import load_online_model, make_online_generator
+    from evojax_motion.online.generation import (
+        load_online_model,
+        make_online_generator,
+        program_parts,
+    )
     from evojax_motion.online.reach import make_reach_checker
 
     model = load_online_model(path, backend=backend)
     args = (model.robot, model.dyn, model.basis_settings, model.settings)
-    gen = make_online_generator(model.robot, model.dyn, model.grid, *args[2:], one_shot=True)
+    gen = make_online_generator(
+        model.robot, model.dyn, model.grid, *args[2:], one_shot=True,
+        cache_parts=program_parts(model),
+    )  # fmt: skip
     return model, gen, make_reach_checker(*args)
 
 
@@ -370,13 +377,14 @@ _CATCHERS: dict = {}
 def _catcher(opened, catch):
     """The jitted catcher of an opened database and catch settings (kept, like `_session`)."""
     from evojax_motion.online.catching import make_catcher
+    from evojax_motion.online.generation import program_parts
 
     key = (id(opened[0]), catch)
     if key not in _CATCHERS:
         model = opened[0]
         _CATCHERS[key] = make_catcher(
             model.robot, model.dyn, model.grid, model.basis_settings, model.settings, catch,
-            one_shot=True,
+            one_shot=True, cache_parts=program_parts(model),
         )  # fmt: skip
     return _CATCHERS[key]
 

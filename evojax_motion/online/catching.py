@@ -48,7 +48,7 @@ ball's path to the reachable region and the time missing.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -62,7 +62,7 @@ from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import Database
 from evojax_motion.motion.timegrid import TimeGrid
-from evojax_motion.online.generation import OnlineResult, finish_motion, problem_of
+from evojax_motion.online.generation import OnlineResult, finish_motion, kept_trace, problem_of
 from evojax_motion.online.limits import joint_limits_f32
 from evojax_motion.online.palm import catch_posture, palm_normal
 from evojax_motion.online.reach import (
@@ -413,19 +413,25 @@ def make_catcher(
     settings: OnlineSettings | None = None,
     catch: CatchSettings | None = None,
     one_shot: bool = False,
+    cache_parts: Any = None,
 ):
     """Jitted ``catcher(db, p0 (B, 3), v0 (B, 3), q_start (B, J)) -> Catch``. ``one_shot``: for
     a ball or two (the command line): compiled faster, run slower (`compile_options.ONE_SHOT`:
-    on 2 CPU cores 10.3 -> 3.9 s to compile, 1.6 -> 3.4 ms a ball)."""
+    on 2 CPU cores 10.3 -> 3.9 s to compile, 1.6 -> 3.4 ms a ball). ``cache_parts``: as
+    `online.generation.make_online_generator`'s (the catch settings are added here)."""
     basis_settings, settings = resolve_settings(basis_settings, settings)
     gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
     lower, upper = joint_limits_f32(robot)
     dyn, options = unfused_cpu_program(dyn)  # as `online.generation.make_online_generator`
+    options = one_shot_options(options, one_shot)
+    catch = catch or CatchSettings()
     fn = functools.partial(
-        catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings,
-        catch or CatchSettings(), palm=palm_normal(robot),
+        catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch,
+        palm=palm_normal(robot),
     )  # fmt: skip
-    return jax.jit(exact_matmuls(fn), compiler_options=one_shot_options(options, one_shot))
+    jitted = jax.jit(exact_matmuls(fn), compiler_options=options)
+    parts = None if cache_parts is None else {**cache_parts, "catch": repr(catch)}
+    return kept_trace(jitted, "online.catch", parts, options)
 
 
 def validate_ball(ball, where: str = "--ball") -> tuple[np.ndarray, np.ndarray]:

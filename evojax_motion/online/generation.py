@@ -33,7 +33,7 @@ import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -303,6 +303,7 @@ def make_online_generator(
     settings: OnlineSettings | None = None,
     fast_path: bool = True,
     one_shot: bool = False,
+    cache_parts: Any = None,
 ) -> Callable:
     """The jitted query ``generate(db, targets (C, 3), duration (C,), q_start (C, J))``.
 
@@ -311,12 +312,44 @@ def make_online_generator(
     C or database shape. ``fast_path``: compile through `model.dynamics.unfused_cpu_program` (faster
     on CPU; False: ``dyn`` as given, XLA's default options). ``one_shot``: for a query or two
     (the command line): compiled faster, run slower (`compile_options.ONE_SHOT`).
+    ``cache_parts``: what the program depends on besides its arguments (JSON-able: the robot
+    model's digest, the settings), to keep its trace across processes
+    (`run.cache.traced_program`); None: traced in this process.
     """
     basis_settings, settings = resolve_settings(basis_settings, settings)
     lower, upper = joint_limits_f32(robot)
     dyn, options = unfused_cpu_program(dyn) if fast_path else (dyn, None)
+    options = one_shot_options(options, one_shot)
     fn = functools.partial(online_query, dyn, grid, lower, upper, basis_settings, settings)
-    return jax.jit(exact_matmuls(fn), compiler_options=one_shot_options(options, one_shot))
+    jitted = jax.jit(exact_matmuls(fn), compiler_options=options)
+    return kept_trace(jitted, "online.generate", cache_parts, options)
+
+
+def kept_trace(jitted, name: str, cache_parts: Any, options: dict | None) -> Callable:
+    """``jitted`` (with jit ``options``), or, where ``cache_parts`` is given, its
+    `run.cache.traced_program` under ``name`` and those parts."""
+    if cache_parts is None:
+        return jitted
+    from evojax_motion.run.cache import traced_program
+
+    return traced_program(jitted, {"program": name, **cache_parts}, options)
+
+
+def program_parts(model: OnlineModel) -> dict:
+    """What an online program of ``model`` depends on besides its arguments, for
+    `kept_trace`: the robot (model digest, joints, site), the time grid's samples, the dynamics
+    backend and the settings."""
+    from evojax_motion.run.cache import model_digest
+
+    robot = model.robot
+    return {
+        "model": model_digest(robot.mj_model),
+        "joints": list(robot.joint_names),
+        "site": robot.site_name,
+        "samples": int(np.shape(model.grid.s)[0]),
+        "dynamics": model.dyn.backend,
+        "settings": repr((model.basis_settings, model.settings)),
+    }
 
 
 def online_database(db: Database) -> Database:

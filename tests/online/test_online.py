@@ -48,6 +48,11 @@ TOL_JACOBI_COST = 1e-3  # relative: their eq. 5 costs (qdd amplifies the 1e-7 ra
 # the CPU fast path (scalar RNEA, XLA fusion emitters off) vs the default program, same query:
 TOL_FAST_Q = 1e-5  # rad (float32 rounding of differently fused IK iterations)
 TOL_FAST_COST = 1e-3  # relative
+# the command line's generator through its kept (exported) trace vs the plain jit, same query:
+# XLA fuses the exported program a little otherwise. Measured 7.5e-8 rad and 2.4e-4 N m (|tau| up
+# to 9.8 N m) by default, 0 under --xla_cpu_max_isa=SSE4_2 (no FMA); about 10x that:
+TOL_KEPT_Q = 1e-6  # rad
+TOL_KEPT_TAU = 2e-3  # N m
 
 
 @pytest.fixture(scope="module")
@@ -436,3 +441,36 @@ def test_cli_generate_end_to_end(env, db_file, tmp_path, capsys, monkeypatch):
     assert data.meta["hand_error"] <= TOL_HAND
     ref = mj_inverse_torques(env.robot, data.q, data.qd, data.qdd)
     np.testing.assert_allclose(data.tau, ref, atol=TOL_TAU)
+
+
+def test_a_kept_trace_gives_the_same_motion_and_is_keyed_by_what_it_closes_over(
+    env, db_file, tmp_path, monkeypatch
+):
+    """The command line's generator keeps its trace (`kept_trace`): the plain jit's motion (to
+    float32 fusion), one exported program on disk, read back by a new generator; the key moves
+    with the settings the program closes over."""
+    import dataclasses
+
+    from evojax_motion.online.generation import (
+        check_query,
+        load_online_model,
+        make_online_generator,
+        program_parts,
+        to_numpy,
+    )
+    from evojax_motion.run import cache
+
+    monkeypatch.setattr(cache, "traced_cache_dir", lambda: tmp_path / "traced")
+    model = load_online_model(db_file)
+    fixed = (model.robot, model.dyn, model.grid, model.basis_settings, model.settings)
+    parts = program_parts(model)
+    query_args = (model.db_device, *check_query(model.robot, env.db.condition[3] + 0.01))
+    plain = to_numpy(make_online_generator(*fixed, one_shot=True)(*query_args))
+    for _ in range(2):  # exported, then read back
+        kept = make_online_generator(*fixed, one_shot=True, cache_parts=parts)
+        got = to_numpy(kept(*query_args))
+        np.testing.assert_allclose(got.q, plain.q, rtol=0, atol=TOL_KEPT_Q)
+        np.testing.assert_allclose(got.tau, plain.tau, rtol=0, atol=TOL_KEPT_TAU)
+        assert len(list((tmp_path / "traced").glob("*"))) == 1
+    other = dataclasses.replace(model.settings, ik_iters=model.settings.ik_iters + 1)
+    assert program_parts(dataclasses.replace(model, settings=other)) != parts
