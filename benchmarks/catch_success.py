@@ -12,7 +12,8 @@ planning time per throw is the latency; wall time after the compile) and execute
 tracking controller of `simulate` with the ball in flight. Planning is timed twice: every throw
 back to back (``planning_s``: a planner fed one ball estimate after the other), and each again
 right after the previous throw's simulation (``planning_after_idle_s``: the program's threads
-idle for the ~0.1-1 s of physics; on 2 CPU cores this adds ~0.7 ms a call). The second plan
+idle for the ~0.1-1 s of physics; on 2 CPU cores this added ~1 ms a call,
+``catch_success_cpu.json``). The second plan
 must give the same motion (checked). Per database (human rows only,
 `motion.database.humans_only`; the learned one of ``--train-dir``):
 

@@ -5,8 +5,9 @@ that run once per process - the synthesis of demonstrations, drawing the conditi
 costs, the limit counts, one ``generate`` or ``catch`` query of the command line - pay that
 compile on every cold start and gain little from it. `ONE_SHOT` sets XLA's backend (LLVM)
 optimisation level to 0 for them on the CPU backend. Measured on 2 CPU cores
-(`benchmarks/cold_start.py`, CHANGELOG.md): the catcher's compile 10.3 -> 3.9 s for 1.6 -> 3.4 ms
-a call; drawing the paper configuration's conditions 8.1 -> 1.5 s. The generation step and the
+(CHANGELOG.md): the catcher's compile 10.3 -> 3.9 s for 1.6 -> 3.4 ms a call; with level 0 for
+every program (``XLA_FLAGS``), a cold paper-configuration ``train``'s conditions phase 8.1 -> 1.5
+s (one run each, on a machine shared with other work). The generation step and the
 programs that answer many queries (benchmarks, an online generator kept in a notebook) keep the
 full level: at level 0 a generation on the CPU took 3.3x as long. GPUs keep the full level: on
 one H200 the setting did not shorten the compile that dominates there (the generation step's).

@@ -3,10 +3,10 @@ synthesising.
 
 Synthesis (`demonstrations.synthetic`) is deterministic: one config gives one database. For
 the configurations in ``configs/`` its result is shipped under ``evojax_motion/data/demos/``,
-one ``.npz`` per `demos_key`, so that a run of them reads 311 demonstrations instead of compiling
-and simulating their trials (on 2 CPU cores most of a cold ``train``'s 34 s went to that;
-`benchmarks/cold_start.py`). Any other config, robot model or package without the file
-synthesises as before.
+one ``.npz`` per `demos_key`, so that a run of them reads its demonstrations instead of compiling
+and simulating their trials (on 2 CPU cores 11.9 s of a cold ``train configs/catch_ball.yaml``'s
+33.9 s went to that; `benchmarks/cold_start.py`). Any other config, robot model or package
+without the file synthesises as before.
 
 The key holds everything a synthesis depends on: the config's ``robot``, ``dynamics`` and
 ``demos`` sections and the robot's MJCF text. `tests/demonstrations/test_shipped.py` synthesises

@@ -143,15 +143,15 @@ def condition_programs(
     # Jitted stages around the data-dependent choices (eager PCA is ~100x slower); the data are
     # arguments, not constants, so that a later run with other demonstrations reuses them.
     options = one_shot()  # run once a run
-    one_shot_jit = functools.partial(jax.jit, compiler_options=options)
+    jit_once = functools.partial(jax.jit, compiler_options=options)
 
-    @one_shot_jit
+    @jit_once
     def candidates(key, lo, hi, condition, human):
         cand = jax.random.uniform(key, (n_cand, 3), condition.dtype, lo, hi)
         nb = select_neighbours(condition, human, cand, basis.neighbours, basis.radius, basis.w_pos)
         return cand, nb
 
-    @one_shot_jit
+    @jit_once
     @exact_matmuls
     def reach(cand, nb, q):
         final = q[nb.index, -1]  # (m, k, J) the neighbours' final postures
@@ -160,7 +160,7 @@ def condition_programs(
             dyn, cand, final[:, 0], lower, upper, q_pref=masked_row_mean(final, nb.mask)
         )
 
-    @one_shot_jit
+    @jit_once
     @exact_matmuls
     def finish(target, nb, qf, ik_error, q, duration):
         j = q.shape[-1]

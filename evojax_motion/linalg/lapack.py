@@ -104,36 +104,35 @@ def _chunked(fn):
     return call
 
 
+def _one_matrix(op: str, full_matrices: bool):
+    """``jnp.linalg``'s solver ``op`` ("svd" or "eigh")."""
+    if op == "eigh":
+        return jnp.linalg.eigh
+    return functools.partial(jnp.linalg.svd, full_matrices=full_matrices)
+
+
 @functools.cache
-def _chunked_svd(full_matrices: bool):
-    return _chunked(functools.partial(jnp.linalg.svd, full_matrices=full_matrices))
+def _wrapped(wrap, op: str, full_matrices: bool = True):
+    """``wrap`` (`_serial` or `_chunked`) of a solver, made once (``custom_vmap`` functions
+    keep their identity across traces)."""
+    return wrap(_one_matrix(op, full_matrices))
 
 
-_chunked_eigh = _chunked(jnp.linalg.eigh)
-
-
-@functools.cache
-def _serial_svd(full_matrices: bool):
-    return _serial(functools.partial(jnp.linalg.svd, full_matrices=full_matrices))
-
-
-_serial_eigh = _serial(jnp.linalg.eigh)
+def _solve(op: str, a, full_matrices: bool = True):
+    """``op`` of ``a (..., m, n)`` on the path this jaxlib and backend need (module docstring)."""
+    if one_matrix_at_a_time():
+        return _wrapped(_serial, op, full_matrices)(a)
+    if batch_limit() is not None:
+        return _wrapped(_chunked, op, full_matrices)(a)
+    return _one_matrix(op, full_matrices)(a)
 
 
 def svd(a: jnp.ndarray, full_matrices: bool = True):
     """``jnp.linalg.svd(a (..., m, n), full_matrices) -> (u, s, vt)`` (module docstring)."""
-    if one_matrix_at_a_time():
-        return _serial_svd(full_matrices)(a)
-    if batch_limit() is not None:
-        return _chunked_svd(full_matrices)(a)
-    return jnp.linalg.svd(a, full_matrices=full_matrices)
+    return _solve("svd", a, full_matrices)
 
 
 def eigh(a: jnp.ndarray):
     """``jnp.linalg.eigh(a (..., n, n)) -> (w (..., n) ascending, v (..., n, n))`` (module
     docstring)."""
-    if one_matrix_at_a_time():
-        return _serial_eigh(a)
-    if batch_limit() is not None:
-        return _chunked_eigh(a)
-    return jnp.linalg.eigh(a)
+    return _solve("eigh", a)

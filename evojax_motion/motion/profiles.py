@@ -1,6 +1,6 @@
 """Rest-to-rest progress profiles on normalised time ``w`` in [0, 1]: 0 -> 1, at rest at both
 ends. The synthetic demonstrations' progress (`minimum_jerk`) and the online limits' paths
-(`online.limits.minimum_jerk_path`, `online.limits.plateau_path`) share them."""
+(`online.limits.minimum_jerk`, `online.limits.plateau_path`) share them."""
 
 from __future__ import annotations
 

@@ -251,8 +251,13 @@ def plan_catch(
     feasible = jnp.take_along_axis(ok_c, best, axis=1)
     pick = jnp.where(feasible, best, 0)
 
+    option_rows = (jnp.arange(b)[:, None] * m + pick).reshape(-1)  # (B * K,) into B * M
+
+    def at_rows(a):  # (B * M, ...) -> (B * K, ...) at the options
+        return a[option_rows]
+
     def at(a):  # (B, M) -> (B * K,) at the options
-        return jnp.take_along_axis(a, pick, axis=1).reshape(-1)
+        return at_rows(a.reshape(-1))
 
     idx = jnp.where(feasible.reshape(-1), at(sample_c), 0)
     # Why not: the path's closest approach to the reachable set (the region's gap; the IK's miss
@@ -273,10 +278,6 @@ def plan_catch(
 
     def per_option(a):  # (B, ...) -> (B * K, ...)
         return jnp.repeat(a, k, axis=0)
-
-    def at_rows(a):  # (B * M, ...) -> (B * K, ...) at the options
-        rows_m = (jnp.arange(b)[:, None] * m + pick).reshape(-1)
-        return a[rows_m]
 
     ik_k = jax.tree_util.tree_map(at_rows, ik)
     reach = reach_of(

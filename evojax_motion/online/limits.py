@@ -251,7 +251,7 @@ def fit_speed(grid: TimeGrid, q, q0, qf, duration, vel_usable):
     """Paths ``q (C, T, J)`` whose joints would be too fast at ``duration (C,)`` made slower,
     per joint: blended toward the rest-to-rest minimum-jerk path ``q0 -> qf (C, J)`` by the
     smallest weight of `SPEED_BLENDS` with ``|qd| <= vel_usable (J,)`` at that duration, else
-    replaced by `plateau_path` (the lowest peak speed of the candidates; it also when it is still
+    replaced by `plateau_path` (the candidates' lowest peak speed; kept also where it is still
     too fast). A joint fast enough keeps its path exactly; every candidate keeps the BCs and
     stays inside any box holding both paths. Returns ``(q, choice (C, J))``: the index into
     `SPEED_BLENDS`, or ``len(SPEED_BLENDS)`` for the plateau.

@@ -37,7 +37,7 @@ def test_every_synthetic_config_has_its_file_and_no_file_is_orphaned():
     assert {p.name for p in SHIPPED_DIR.glob("*.npz")} == expected
 
 
-def test_a_config_that_differs_does_not_take_the_shipped_file(tmp_path):
+def test_a_config_that_differs_does_not_take_the_shipped_file():
     cfg = load_config(CONFIGS / "tiny.yaml", overrides=["demos.seed=1"])
     robot, _ = make_robot_dynamics(cfg)
     assert not shipped_path(cfg, robot).is_file()
