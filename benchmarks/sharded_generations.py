@@ -29,7 +29,7 @@ CPU check of the script (forced host devices share the cores: correctness, not s
         --config configs/tiny.yaml --sweep-conditions 12 --generations 2 --tag cpu2
 One GPU, the sharded step on one device against the unsharded step:
     python benchmarks/sharded_generations.py --sweep-conditions 100000 --devices 1 --unsharded \
-        --tag h200
+        --generations 4 --tag gpu_h200_one_device
 Writes ``benchmarks/results/sharded_generations_<tag>.json`` (+ ``.md``) and prints the table.
 """
 
@@ -114,12 +114,14 @@ def run_point(args) -> None:
     import jax
 
     from evojax_motion.evolution.sharding import padded_count, replicate
+    from evojax_motion.evolution.step import with_search_candidates
     from evojax_motion.run.workflow import make_robot_dynamics
     from evojax_motion.settings import load_config
 
     cfg = load_config(args.config, args.set)
     robot, dyn = make_robot_dynamics(cfg)
     db, cond, n_human = load_state(Path(args.child))
+    cond = with_search_candidates(db, cond, cfg.basis)  # not saved: derived, as on a resume
     m = int(cond.target.shape[0])
     out: dict = {"conditions": m, "devices": args.devices, "samples": int(db.q.shape[1])}
     out["step"] = "unsharded" if args.unsharded else "sharded"
@@ -253,8 +255,19 @@ def record(result: dict, out: Path, point: dict) -> None:
     out.write_text(json.dumps(result, indent=2) + "\n")
 
 
+def _cell(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
 # The databases a point is compared with in the table, the first it has: (key, shown as).
 REFERENCES = (("vs_one_device", "sharded, 1 device"), ("vs_unsharded", "unsharded"))
+
+
+def shown_path(path: str) -> str:
+    """``path`` relative to the repository where it lies inside it (no machine's folders in a
+    result file), else as given."""
+    full = Path(path).resolve()
+    return str(full.relative_to(ROOT)) if full.is_relative_to(ROOT) else path
 
 
 def markdown(result: dict) -> str:
@@ -274,7 +287,6 @@ def markdown(result: dict) -> str:
         "gen 1: max abs dq [rad] | last gen: max abs dq [rad] |",
         "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|",
     ]
-    nan = float("nan")
     for r in result["points"]:
         peak_bytes = max(r.get("peak_memory_bytes") or [-1])
         peak = f"{peak_bytes / GIB:.1f}" if peak_bytes >= 0 else "-"  # CPU: no allocator stats
@@ -288,17 +300,21 @@ def markdown(result: dict) -> str:
         against, ref = next(((name, r[key]) for key, name in REFERENCES if key in r), ("-", {}))
         cmp, last = ref.get("generation_1", {}), ref.get("final", {})
         bit = cmp.get("q_bitwise_fraction")
-        ratio = (r.get("vs_unsharded") or {}).get("time_ratio")
-        lines.append(
-            f"{head} {r['compile_s']:.1f} | "
-            f"{r['seconds_per_generation']:.4g} | {r['generations_per_s']:.3g} | "
-            f"{r.get('speedup', nan):.2f} | {r.get('efficiency', nan):.2f} | "
-            f"{'-' if ratio is None else f'{ratio:.3f}'} | "
-            f"{peak} | {r['db_cost_mean'][-1]:.4f} | {against} | "
-            f"{'-' if bit is None else f'{100 * bit:.1f} %'} | "
-            f"{cmp.get('q_max_abs_diff', nan):.2g} | "
-            f"{last.get('q_max_abs_diff', nan):.2g} |"
-        )
+        cells = [
+            _cell(r.get("compile_s"), ".1f"),
+            _cell(r.get("seconds_per_generation"), ".4g"),
+            _cell(r.get("generations_per_s"), ".3g"),
+            _cell(r.get("speedup"), ".2f"),
+            _cell(r.get("efficiency"), ".2f"),
+            _cell((r.get("vs_unsharded") or {}).get("time_ratio"), ".3f"),
+            peak,
+            _cell(r["db_cost_mean"][-1], ".4f"),
+            against,
+            "-" if bit is None else f"{100 * bit:.1f} %",
+            _cell(cmp.get("q_max_abs_diff"), ".2g"),
+            _cell(last.get("q_max_abs_diff"), ".2g"),
+        ]
+        lines.append(f"{head} {' | '.join(cells)} |")
     return "\n".join(lines)
 
 
@@ -339,7 +355,7 @@ def main(argv=None) -> None:
     counts = sorted({1, n_all}) if not args.devices else [int(x) for x in args.devices.split(",")]
     result = {
         "machine": machine_info(),
-        "config": args.config,
+        "config": shown_path(args.config),
         "overrides": args.set,
         "generations": args.generations,
         "points": [],
