@@ -32,7 +32,8 @@ NOT_RECORDED = "not recorded"
 # key must name a file in results/ (tests/benchmark_scripts/test_make_report.py).
 NOTES = {
     "sharded_generations_h200x2.json": "run when the shipped config's method was `newton` (add "
-    "`--set compiler.method=newton` to repeat it)",
+    "`--set compiler.method=newton` to repeat it) and when both points copied database and "
+    "conditions from and to the host every generation",
     "optimality_cpu_bfgs.json": "`python benchmarks/optimality.py --variants bfgs`",
     "optimality_cpu_fast.json": "Newton with the paper config's `search_stride` and "
     "`max_free_per_joint`",
@@ -252,10 +253,14 @@ def sharded(src: Sources) -> list[str]:
             f"`{name}`",
             machine_label(d["machine"]),
             f"{p['conditions']:,}",
+            p.get("step", "sharded"),
             p["devices"],
             f"{p['compile_s']:.1f}",
-            f"{p['seconds_per_generation']:.2f}",
-            f"{p['speedup']:.2f}",
+            f"{p['seconds_per_generation']:.3f}",
+            *(
+                "-" if x is None else f"{x:.2f}"
+                for x in (p.get("speedup"), (p.get("vs_unsharded") or {}).get("time_ratio"))
+            ),
             f"{max(p['peak_memory_bytes']) / 2**30:.1f}",
             f"{p['db_cost_mean'][-1]:.4f}",
         ]
@@ -264,14 +269,15 @@ def sharded(src: Sources) -> list[str]:
     ]
     return section(
         "Several GPUs (`benchmarks/sharded_generations.py`)",
-        "One process drives every device; each point runs in a process of its own.",
+        "One process drives every device; each point runs in a process of its own. `unsharded`: "
+        "the one-device step as `train` runs it (two programs), the reference of the time ratio.",
         table(
             (
-                "file | machine | conditions | devices | compile s | s / generation | "
-                "speed-up | peak GiB / device | final `db_cost_mean`"
+                "file | machine | conditions | step | devices | compile s | s / generation | "
+                "speed-up | time over unsharded | peak GiB / device | final `db_cost_mean`"
             ),
             rows,
-            "llrrrrrrr",
+            "llrlrrrrrrr",
         ),
         found,
     )

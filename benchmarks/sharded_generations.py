@@ -6,10 +6,16 @@ One invocation, for each condition count of ``--sweep-conditions`` (default 1000
   ``run.training.initial_state`` of ``--config`` with ``evolution.conditions`` set to the count);
 - for each device count of ``--devices`` (default: 1 and all visible), in a fresh process (clean
   peak-memory counters; an out-of-memory point is recorded as such and the sweep goes on):
-  compiles ``evolution.sharding.make_sharded_generation_step`` ahead of time (``compile_s``), runs
-  ``--generations`` generations and reports the median seconds of generations 2.. (generation 1
-  fills empty slots: different work) -> generations/s, the speed-up over one device and the
-  parallel efficiency (speed-up / devices), and each device's peak memory;
+  compiles ``evolution.sharding.make_sharded_generation_step`` (with the robot's torque and
+  velocity limits, as `train` builds it) ahead of time (``compile_s``), puts database and
+  conditions on the devices once and feeds each generation's database to the next, as `train`
+  does (`run.compilation.generation_inputs`), runs ``--generations`` generations and reports
+  the median seconds of generations 2.. (generation 1 fills empty slots: different work) ->
+  generations/s, the speed-up over one device and the parallel efficiency (speed-up /
+  devices), and each device's peak memory;
+- with ``--unsharded``, first the same for the unsharded step as `train` runs it on one device
+  (`run.compilation.compile_generation_step`: two programs), the reference of every point's
+  ``vs_unsharded`` (time ratio, databases compared);
 - compares the databases that one and n devices give after generation 1 (the same input: a
   per-step comparison) and after the last generation (chained: rounding-level differences
   compound through survivor selection, docs/scaling.md): slots whose trajectory is bit-identical,
@@ -21,6 +27,9 @@ Usage (GPU host, all GPUs visible):
 CPU check of the script (forced host devices share the cores: correctness, not speed):
     XLA_FLAGS=--xla_force_host_platform_device_count=2 python benchmarks/sharded_generations.py \
         --config configs/tiny.yaml --sweep-conditions 12 --generations 2 --tag cpu2
+One GPU, the sharded step on one device against the unsharded step:
+    python benchmarks/sharded_generations.py --sweep-conditions 100000 --devices 1 --unsharded \
+        --generations 4 --tag gpu_h200_one_device
 Writes ``benchmarks/results/sharded_generations_<tag>.json`` (+ ``.md``) and prints the table.
 """
 
@@ -75,42 +84,63 @@ def load_state(path: Path):
 # ------------------------------------------------------------------- one point (child)
 
 
+def compile_point(args, cfg, robot, dyn, db, cond, n_human: int):
+    """The step a point times, compiled ahead of time for ``db`` and ``cond``: the sharded step
+    on ``args.devices`` devices, or (``args.unsharded``) the unsharded step as `train` compiles
+    it on one device."""
+    from evojax_motion.evolution.sharding import make_sharded_generation_step
+    from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.run.compilation import compile_generation_step
+    from evojax_motion.settings import config_from_dict, config_to_dict
+
+    if args.unsharded:
+        one = config_from_dict(config_to_dict(cfg), ["parallel.devices=1"])
+        return compile_generation_step(one, robot, dyn, db, cond)
+    step = make_sharded_generation_step(
+        dyn, make_time_grid(db.q.shape[1]), robot.lower, robot.upper, n_human,
+        cfg.basis, cfg.compiler, cfg.evolution, devices=args.devices,
+        torque_limit=robot.torque_limit, velocity_limit=robot.velocity_limit,
+    )  # fmt: skip
+    return step.lower(db, cond, np.asarray(1, np.int32)).compile()
+
+
+def save_db(path: Path, db) -> None:
+    np.savez(path, **{k: np.asarray(v) for k, v in db._asdict().items()})
+
+
 def run_point(args) -> None:
-    """Child process: time the sharded step on ``args.devices`` devices; print one JSON line."""
+    """Child process: time the sharded step on ``args.devices`` devices (or the unsharded step);
+    print one JSON line."""
     import jax
 
-    from evojax_motion.evolution.sharding import make_sharded_generation_step, padded_count
-    from evojax_motion.motion.database import Database
-    from evojax_motion.motion.timegrid import make_time_grid
+    from evojax_motion.evolution.sharding import padded_count, replicate
+    from evojax_motion.evolution.step import with_search_candidates
     from evojax_motion.run.workflow import make_robot_dynamics
     from evojax_motion.settings import load_config
 
     cfg = load_config(args.config, args.set)
     robot, dyn = make_robot_dynamics(cfg)
     db, cond, n_human = load_state(Path(args.child))
+    cond = with_search_candidates(db, cond, cfg.basis)  # not saved: derived, as on a resume
     m = int(cond.target.shape[0])
     out: dict = {"conditions": m, "devices": args.devices, "samples": int(db.q.shape[1])}
-    out["m_pad"] = padded_count(m, args.devices)
+    out["step"] = "unsharded" if args.unsharded else "sharded"
+    out["m_pad"] = m if args.unsharded else padded_count(m, args.devices)
     try:
-        step = make_sharded_generation_step(
-            dyn, make_time_grid(db.q.shape[1]), robot.lower, robot.upper, n_human,
-            cfg.basis, cfg.compiler, cfg.evolution, devices=args.devices,
-        )  # fmt: skip
         t0 = time.perf_counter()
-        compiled = step.lower(db, cond, np.asarray(1, np.int32)).compile()
+        compiled = compile_point(args, cfg, robot, dyn, db, cond, n_human)
         out["compile_s"] = time.perf_counter() - t0
+        db, cond = replicate((db, cond), args.devices)  # once, as `train` does
         seconds, costs, all_stats = [], [], []
         for g in range(1, args.generations + 1):
             t0 = time.perf_counter()
-            new, stats = compiled(db, cond, np.asarray(g, np.int32))
-            db = Database(*(np.asarray(a) for a in jax.block_until_ready(new)))
+            db, stats = compiled(db, cond, np.asarray(g, np.int32))
+            db = jax.block_until_ready(db)
             seconds.append(time.perf_counter() - t0)
             costs.append(float(stats.db_cost_mean))
             all_stats.append({k: float(v) for k, v in stats._asdict().items()})
             if g == 1:  # the same input on every device count: a per-step comparison
-                np.savez(
-                    gen1_path(args.result), **{k: np.asarray(v) for k, v in db._asdict().items()}
-                )
+                save_db(gen1_path(args.result), db)
         later = seconds[1:] or seconds
         out.update(
             seconds=seconds,
@@ -120,7 +150,7 @@ def run_point(args) -> None:
             db_cost_mean=costs,
             stats=all_stats,
         )
-        np.savez(args.result, **{k: np.asarray(v) for k, v in db._asdict().items()})
+        save_db(Path(args.result), db)
     except Exception as e:  # out of memory at 100k conditions on one device, say
         out["error"] = f"{type(e).__name__}: {str(e).splitlines()[0][:300]}"
     out["peak_memory_bytes"] = [
@@ -186,42 +216,105 @@ def child_env(user: dict) -> dict:
     return env
 
 
+def run_child(args, state: Path, m: int, n: int, unsharded: bool, tmp: str) -> tuple[dict, Path]:
+    """One point in a process of its own: the sharded step on ``n`` devices, or the unsharded
+    step. ``(point, file)``: the point's JSON and the file of its final database."""
+    res_path = Path(tmp) / f"db_{m}_{'unsharded' if unsharded else n}.npz"
+    cmd = [sys.executable, __file__, "--config", args.config, "--child", str(state),
+           "--devices", str(n), "--generations", str(args.generations),
+           "--result", str(res_path)]  # fmt: skip
+    cmd += ["--unsharded"] if unsharded else []
+    for s in args.set:
+        cmd += ["--set", s]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(args.user_env))
+    lines = proc.stdout.strip().splitlines()
+    if proc.returncode == 0 and lines:
+        return json.loads(lines[-1]), res_path
+    err = f"exit {proc.returncode}: {proc.stderr.strip()[-300:]}"
+    step = "unsharded" if unsharded else "sharded"
+    point = {"conditions": m, "devices": n, "step": step, "peak_memory_bytes": [], "error": err}
+    return point, res_path
+
+
+def versus(ref: tuple[dict, Path], point: dict, res_path: Path, n_human: int) -> dict:
+    """``point`` (final database in ``res_path``) against ``ref``, a ``(point, file)``: its
+    time per generation over the reference's, and the databases compared after generation 1
+    and after the last."""
+    return {
+        "time_ratio": point["seconds_per_generation"] / ref[0]["seconds_per_generation"],
+        "generation_1": compare(gen1_path(ref[1]), gen1_path(res_path), n_human),
+        "final": compare(ref[1], res_path, n_human),
+    }
+
+
+def record(result: dict, out: Path, point: dict) -> None:
+    """Add ``point`` to ``result``, print it and write the result so far (partial results
+    survive a failed point)."""
+    result["points"].append(point)
+    print(json.dumps({k: v for k, v in point.items() if k != "seconds"}), flush=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+
+
+def _cell(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+# The databases a point is compared with in the table, the first it has: (key, shown as).
+REFERENCES = (("vs_one_device", "sharded, 1 device"), ("vs_unsharded", "unsharded"))
+
+
+def shown_path(path: str) -> str:
+    """``path`` relative to the repository where it lies inside it (no machine's folders in a
+    result file), else as given."""
+    full = Path(path).resolve()
+    return str(full.relative_to(ROOT)) if full.is_relative_to(ROOT) else path
+
+
 def markdown(result: dict) -> str:
-    from make_report import cpu_label
+    from make_report import machine_label
 
     m = result["machine"]
+    cpus = "" if m["platform"] == "cpu" else f", {m['cpu_count']} CPUs"  # the label has a CPU's
     lines = [
-        f"Machine: {m['device_count']} x {m['device_kind']} ({m['platform']}, {cpu_label(m)}), "
+        f"Machine: {machine_label(m)} ({m['platform']}{cpus}), "
         f"jax {m['jax']}, {m['date']}. Config: `{result['config']}`"
         + (f" with {', '.join(result['overrides'])}" if result["overrides"] else "")
         + f". Command: `{m['command']}`",
         "",
-        "| conditions | devices | compile s | s / generation | generations / s | speed-up | "
-        "efficiency | peak GiB / device | last gen: db cost mean | gen 1: q bit-identical | "
+        "| conditions | step | devices | compile s | s / generation | generations / s | speed-up | "
+        "efficiency | s / generation over unsharded | peak GiB / device | "
+        "last gen: db cost mean | compared with | gen 1: q bit-identical | "
         "gen 1: max abs dq [rad] | last gen: max abs dq [rad] |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|",
     ]
     for r in result["points"]:
         peak_bytes = max(r.get("peak_memory_bytes") or [-1])
         peak = f"{peak_bytes / GIB:.1f}" if peak_bytes >= 0 else "-"  # CPU: no allocator stats
+        head = f"| {r['conditions']} | {r.get('step', 'sharded')} | {r['devices']} |"
         if "error" in r:
             lines.append(
-                f"| {r['conditions']} | {r['devices']} | - | - | - | - | - | {peak} | - | "
-                f"{r['error'][:60]} | - | - |"
+                f"{head} - | - | - | - | - | - | {peak} | - | - | {r['error'][:60]} | - | - |"
             )
             continue
-        cmp = (r.get("vs_one_device") or {}).get("generation_1", {})
-        last = (r.get("vs_one_device") or {}).get("final", {})
+        # against the sharded step on one device, or (that point itself) the unsharded step
+        against, ref = next(((name, r[key]) for key, name in REFERENCES if key in r), ("-", {}))
+        cmp, last = ref.get("generation_1", {}), ref.get("final", {})
         bit = cmp.get("q_bitwise_fraction")
-        lines.append(
-            f"| {r['conditions']} | {r['devices']} | {r['compile_s']:.1f} | "
-            f"{r['seconds_per_generation']:.4g} | {r['generations_per_s']:.3g} | "
-            f"{r.get('speedup', float('nan')):.2f} | {r.get('efficiency', float('nan')):.2f} | "
-            f"{peak} | {r['db_cost_mean'][-1]:.4f} | "
-            f"{'-' if bit is None else f'{100 * bit:.1f} %'} | "
-            f"{cmp.get('q_max_abs_diff', float('nan')):.2g} | "
-            f"{last.get('q_max_abs_diff', float('nan')):.2g} |"
-        )
+        cells = [
+            _cell(r.get("compile_s"), ".1f"),
+            _cell(r.get("seconds_per_generation"), ".4g"),
+            _cell(r.get("generations_per_s"), ".3g"),
+            _cell(r.get("speedup"), ".2f"),
+            _cell(r.get("efficiency"), ".2f"),
+            _cell((r.get("vs_unsharded") or {}).get("time_ratio"), ".3f"),
+            peak,
+            _cell(r["db_cost_mean"][-1], ".4f"),
+            against,
+            "-" if bit is None else f"{100 * bit:.1f} %",
+            _cell(cmp.get("q_max_abs_diff"), ".2g"),
+            _cell(last.get("q_max_abs_diff"), ".2g"),
+        ]
+        lines.append(f"{head} {' | '.join(cells)} |")
     return "\n".join(lines)
 
 
@@ -232,6 +325,11 @@ def main(argv=None) -> None:
     p.add_argument("--sweep-conditions", default="10000,100000")
     p.add_argument("--devices", default="", help="e.g. 1,2,4 (default: 1 and all visible)")
     p.add_argument("--generations", type=int, default=3, help="timed generations per point")
+    p.add_argument(
+        "--unsharded",
+        action="store_true",
+        help="also time the unsharded step on one device, the reference of every point",
+    )
     p.add_argument("--tag", default="", help="suffix of the JSON name (default: platform)")
     p.add_argument("--out-dir", default=str(ROOT / "benchmarks" / "results"))
     p.add_argument("--child", default="", help=argparse.SUPPRESS)
@@ -241,7 +339,7 @@ def main(argv=None) -> None:
         args.devices = int(args.devices)
         run_point(args)
         return
-    user = {key: os.environ.get(key) for key in PARENT_ALLOCATION}
+    args.user_env = {key: os.environ.get(key) for key in PARENT_ALLOCATION}
     os.environ.update(PARENT_ALLOCATION)
 
     import gc
@@ -257,7 +355,7 @@ def main(argv=None) -> None:
     counts = sorted({1, n_all}) if not args.devices else [int(x) for x in args.devices.split(",")]
     result = {
         "machine": machine_info(),
-        "config": args.config,
+        "config": shown_path(args.config),
         "overrides": args.set,
         "generations": args.generations,
         "points": [],
@@ -275,21 +373,14 @@ def main(argv=None) -> None:
             del db, cond  # free the parent's device memory before the children run
             gc.collect()
             print(f"conditions {m}: generation 0 built in {time.perf_counter() - t0:.1f} s")
-            base = None
+            plain = None  # (point, final database file) of the unsharded step
+            if args.unsharded:
+                plain = run_child(args, state, m, 1, True, tmp)
+                record(result, out, plain[0])
+                plain = None if "error" in plain[0] else plain
+            base = None  # ditto, the sharded step on one device
             for n in counts:
-                res_path = Path(tmp) / f"db_{m}_{n}.npz"
-                cmd = [sys.executable, __file__, "--config", args.config, "--child", str(state),
-                       "--devices", str(n), "--generations", str(args.generations),
-                       "--result", str(res_path)]  # fmt: skip
-                for s in args.set:
-                    cmd += ["--set", s]
-                proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(user))
-                lines = proc.stdout.strip().splitlines()
-                if proc.returncode != 0 or not lines:
-                    err = f"exit {proc.returncode}: {proc.stderr.strip()[-300:]}"
-                    point = {"conditions": m, "devices": n, "peak_memory_bytes": [], "error": err}
-                else:
-                    point = json.loads(lines[-1])
+                point, res_path = run_child(args, state, m, n, False, tmp)
                 if "error" not in point:
                     if n == 1:
                         base = (point, res_path)
@@ -299,15 +390,10 @@ def main(argv=None) -> None:
                             base[0]["seconds_per_generation"] / point["seconds_per_generation"]
                         )
                         point["efficiency"] = point["speedup"] / n
-                        point["vs_one_device"] = {
-                            "generation_1": compare(
-                                gen1_path(base[1]), gen1_path(res_path), n_human
-                            ),
-                            "final": compare(base[1], res_path, n_human),
-                        }
-                result["points"].append(point)
-                print(json.dumps({k: v for k, v in point.items() if k != "seconds"}), flush=True)
-                out.write_text(json.dumps(result, indent=2) + "\n")  # partial results survive
+                        point["vs_one_device"] = versus(base, point, res_path, n_human)
+                    if plain is not None:
+                        point["vs_unsharded"] = versus(plain, point, res_path, n_human)
+                record(result, out, point)
     table = markdown(result)
     out.with_suffix(".md").write_text(table + "\n")
     print(table)

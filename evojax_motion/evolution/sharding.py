@@ -89,6 +89,26 @@ def condition_mesh(devices: int | Sequence | None = None) -> Mesh:
     return Mesh(np.asarray(devs), (CONDITION_AXIS,), axis_types=(AxisType.Auto,))
 
 
+def replicate(tree, devices: int | Sequence | None = None):
+    """``tree`` placed whole on every device of `condition_mesh` (``devices``): the placement in
+    which the sharded step (any device count) takes and returns its inputs, so that a database
+    it returned goes back in without a copy, and conditions put there once stay there between
+    generations (`run.compilation.generation_inputs`).
+
+    A multi-process run: every process passes the same values (`same_on_every_process`) and each
+    puts them on its own devices. Not compared here: ``jax.device_put``'s check of that calls a
+    NaN (a condition's unreachable posture, say) different from itself."""
+    sharding = NamedSharding(condition_mesh(devices), P())
+    if sharding.is_fully_addressable:  # one process
+        return jax.device_put(tree, sharding)
+
+    def put(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+    return jax.tree_util.tree_map(put, tree)
+
+
 def padded_count(m: int, multiple: int) -> int:
     """The padding rule: the smallest multiple of ``multiple`` that is >= ``m``."""
     return -(-m // multiple) * multiple
@@ -247,8 +267,11 @@ def sharded_generation_step(
     jitted ``step(db, conditions, generation) -> (db, GenerationStats)``
     with ``db`` of capacity ``n_human + m`` and ``conditions`` of any m >= 1 (the padding is
     internal). Inputs may be numpy arrays: they are replicated to every device (in a multi-host run
-    every process must pass the same values). Outputs are replicated, so ``np.asarray`` works on
-    every process. ``step.lower(...).compile()`` works as on the plain step.
+    every process must pass the same values), every call again; put them there once instead
+    (`replicate`): at 100,000 conditions on one H200 the numpy round trip of database and
+    conditions cost 0.25 s a generation beside the step's 0.46 s. Outputs are replicated, so
+    they go back in as they are, and ``np.asarray`` works on every process.
+    ``step.lower(...).compile()`` works as on the plain step.
 
     Per device, inside ``shard_map``, the unchanged step runs on the device's m / d conditions
     against its local database (module docstring); the new slots, the rows after the global

@@ -5,7 +5,7 @@ The generation step as one program or as two compiled side by side (`compile_gen
 (`setup_programs`); and `EarlyCompile`, which compiles both in background threads from the sizes
 known before the demonstrations exist (`expected_sizes`, `expected_inputs`), so that their
 compile overlaps the demonstrations' synthesis. Also where the generations' inputs live between
-generations (`stays_on_device`, `generation_inputs`).
+generations (`generation_inputs`).
 """
 
 from __future__ import annotations
@@ -72,12 +72,9 @@ def wait_for_step(early: EarlyCompile | None) -> tuple:
     return step, time.perf_counter() - t0
 
 
-def stays_on_device(cfg: Config) -> bool:
-    """Whether the generations' inputs stay on the device between generations: the database the
-    step returned, and the conditions put there once. True where the step runs on one device
-    (with numpy inputs every call copied them from the host and changed their layout there:
-    ~2 ms a generation at 1,000 conditions on an H100, CHANGELOG.md); a sharded step
-    takes its inputs from the host as before."""
+def one_device(cfg: Config) -> bool:
+    """Whether ``cfg``'s generation step runs on one device (`compile_generation_step`: two
+    programs) rather than sharded over several (`evolution.sharding.sharded_generation_step`)."""
     from evojax_motion.evolution.sharding import resolve_devices
 
     return len(resolve_devices(cfg.parallel.devices)) == 1
@@ -85,10 +82,13 @@ def stays_on_device(cfg: Config) -> bool:
 
 def generation_inputs(cfg: Config, db, conditions):
     """``(db, conditions)`` as the generation step takes them from the first generation on: put
-    on the device once where they stay there (`stays_on_device`), else as given."""
-    import jax
+    once, whole, on every device of the step (`evolution.sharding.replicate`), where they stay
+    between generations, since the step returns its database placed so. With numpy inputs
+    every call copied them from the host and changed their layout there: ~2 ms a generation at
+    1,000 conditions on an H100, 0.25 s at 100,000 on an H200 (CHANGELOG.md)."""
+    from evojax_motion.evolution.sharding import replicate
 
-    return jax.device_put((db, conditions)) if stays_on_device(cfg) else (db, conditions)
+    return replicate((db, conditions), cfg.parallel.devices)
 
 
 class StagedStep:
@@ -135,7 +135,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     fixed = (dyn, grid, robot.lower, robot.upper, n_human, cfg.basis, cfg.compiler, cfg.evolution)
     limits = {"torque_limit": robot.torque_limit, "velocity_limit": robot.velocity_limit}
     generation = np.asarray(1, np.int32)  # the generation index is traced
-    if not stays_on_device(cfg):  # sharded over several devices
+    if not one_device(cfg):
         step_fn, _ = sharded_generation_step(*fixed, devices=cfg.parallel.devices, **limits)
         return step_fn.lower(db, conditions, generation).compile()
     prepare, finish, options = one_device_stages(*fixed, devices=cfg.parallel.devices, **limits)
@@ -198,13 +198,10 @@ class EarlyCompile:
     for its compiles before saying what was wrong."""
 
     def __init__(self, cfg: Config, robot, dyn):
-        from evojax_motion.evolution.sharding import resolve_devices
-
         self._args = (cfg, robot, dyn)
         sizes = expected_sizes(cfg, robot)
         self.setup = None if sizes is None else setup_programs(cfg, robot, dyn, sizes)
-        one_device = len(resolve_devices(cfg.parallel.devices)) == 1
-        step = sizes is not None and cfg.evolution.generations > 0 and one_device
+        step = sizes is not None and cfg.evolution.generations > 0 and one_device(cfg)
         self._expected = expected_inputs(cfg, robot, sizes) if step else None
         self._threads: list = []
 

@@ -464,7 +464,6 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     bar = tqdm(
         total=evo.generations, initial=start, disable=not progress, desc="evolution", unit="gen"
     )
-    resident = compilation.stays_on_device(cfg)
     db_in, conditions_in = compilation.generation_inputs(cfg, db, conditions)
 
     def launch(g: int, db_in) -> tuple:
@@ -488,11 +487,8 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
                 raise failed
             db_new, stats = pending
             db_new = jax.block_until_ready(db_new)
-            if resident:
-                pending, failed = launch(g + 1, db_new)
+            pending, failed = launch(g + 1, db_new)
             db = _numpy_db(db_new)  # for the files
-            if not resident:
-                pending, failed = launch(g + 1, db)
             now = time.perf_counter()
             row = {
                 "generation": g,

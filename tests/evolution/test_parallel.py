@@ -237,11 +237,23 @@ def test_sharded_program_gathers_only_the_new_slots(sharded_run):
 
 
 @pytest.mark.slow
+def test_inputs_kept_on_the_devices_give_the_same_database(sharded_run):
+    """Database and conditions put on the devices once (`replicate`, as `train` does) and each
+    generation's database fed to the next as the step returned it: the chained databases of
+    numpy inputs, bit for bit, on one device and on 4."""
+    assert sharded_run["resident_digests"] == {
+        "1": sharded_run["one_device_digests"],
+        "4": sharded_run["sharded_digests"],
+    }
+
+
+@pytest.mark.slow
 def test_two_processes_give_the_same_database(sharded_run):
     """Multi-host path: 2 processes x 2 CPU devices joined by `initialize_distributed` (gloo
     collectives, localhost) take process 0's inputs (`same_on_every_process`; process 1 starts
-    from a perturbed copy) and run the same 4-way sharded step on them; both read back the
-    database of the single-process 4-device run, bit for bit."""
+    from a perturbed copy), put them on the devices once (`replicate`) and run the same 4-way
+    sharded step on them, each generation's database fed back as returned; both read back the
+    database of the single-process 4-device run from numpy inputs, bit for bit."""
     from multiprocess_support import process_envs
 
     procs = [
@@ -346,6 +358,20 @@ def _run(step, db0, cond):
     return [first, _generation(step, first[0], cond, 2)]
 
 
+def _run_resident(step, db0, cond, devices: int) -> list[str]:
+    """`_digests` of two chained generations with the inputs put on ``devices`` once and the
+    database fed back as the step returned it (device arrays, not numpy)."""
+    from evojax_motion.evolution.sharding import replicate
+    from evojax_motion.motion.database import Database
+
+    db, cond = replicate((db0, cond), devices)
+    runs = []
+    for g in (1, 2):
+        db, _ = step(db, cond, np.int32(g))
+        runs.append((Database(*(np.asarray(a) for a in db)), None))
+    return _digests(runs)
+
+
 def _digests(runs) -> list[str]:
     import hashlib
 
@@ -367,9 +393,10 @@ def _child_multihost() -> dict:
     if info["process_index"] == 1:  # a host that computed other bits: process 0's copy wins
         db0 = db0._replace(q=db0.q + 1e-3)
     db0, cond = same_on_every_process((db0, cond))
-    runs = _run(make_sharded_generation_step(*args, devices=jax.device_count()), db0, cond)
+    step = make_sharded_generation_step(*args, devices=jax.device_count())
     process = {"index": info["process_index"], "count": info["process_count"]}
-    return {"process": {**process, "devices": info["devices"]}, "digests": _digests(runs)}
+    digests = _run_resident(step, db0, cond, jax.device_count())
+    return {"process": {**process, "devices": info["devices"]}, "digests": digests}
 
 
 def _child_single() -> dict:
@@ -434,8 +461,14 @@ def _child_single() -> dict:
         make_sharded_generation_step(*bfgs, devices=d).lower(db0, cond, np.int32(1)) is not None
         for d in (1, N_DEVICES)
     ]
+    resident = {
+        str(d): _run_resident(make_sharded_generation_step(*args, devices=d), db0, cond, d)
+        for d in (1, N_DEVICES)
+    }
     return {
         "bfgs_lowers": lowered,
+        "one_device_digests": _digests(ref),
+        "resident_digests": resident,
         "devices": jax.device_count(),
         "m_pad": padded_count(M_COND, N_DEVICES),
         "generations": gens,
