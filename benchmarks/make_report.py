@@ -34,10 +34,10 @@ NOTES = {
     "sharded_generations_h200x2.json": "run when the shipped config's method was `newton` (add "
     "`--set compiler.method=newton` to repeat it) and when both points copied database and "
     "conditions from and to the host every generation",
-    "optimality_cpu_bfgs.json": "`python benchmarks/optimality.py --variants bfgs`",
     "optimality_cpu_fast.json": "Newton with the paper config's `search_stride` and "
     "`max_free_per_joint`",
-    "online_quality.json": "the database of a paper-scale run trained with `newton` on a GPU",
+    "online_quality.json": "`python benchmarks/online_quality.py --run runs/paper`, the run of "
+    "`evojax-motion train configs/catch_ball.yaml --out runs/paper` on 2 CPU cores",
 }
 
 

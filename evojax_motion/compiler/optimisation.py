@@ -63,7 +63,8 @@ Measured (``benchmarks/optimality.py``, 100 conditions of the default synthetic 
 | adam, 1000 steps, lr 0.03 | -0.002 % | 0.64 % | 8.7 % | 41 |
 | lbfgs (optax, 60 iterations) | -0.003 % | 0.53 % | 12.5 % | 118 |
 
-The bfgs row: ``optimality_cpu_bfgs.json`` (``--variants bfgs``; BFGS keeps its model through a
+The bfgs row: ``--variants bfgs`` (its result file is in the git history of
+``benchmarks/results/``; BFGS keeps its model through a
 rejected step: restarting it there gave median -0.003 %, p95 2.5 %, max 12.5 %).
 The paper config (``search_stride: 4``, ``max_free_per_joint: 2``) in a later run of the same
 benchmark (``results/optimality_cpu_fast.json``): median -0.0015 %, p95 0.22 %, max 3.0 %, 15 s
