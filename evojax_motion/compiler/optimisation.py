@@ -165,7 +165,8 @@ class Prepared(NamedTuple):
     start and the free directions (bool); coeffs_ls: ``(C, J, K+1)`` the coefficients at z = 0;
     null: ``(C, J, K+1, F)`` its free directions in the weights; initial: ``(B, J F, J F)``
     BFGS's first model of the torque cost (`compiler.search_objective.gauss_newton_model` at
-    z0), or None (other methods, or ``initial_model: identity``).
+    the condition's first start, the same for all its starts), or None (other methods, or
+    ``initial_model: identity``).
     """
 
     problems: Problem
