@@ -87,8 +87,8 @@ def pytest_unconfigure(config):
 # they run one after another on one worker and the later ones find the first one's compiles in
 # the test run's XLA cache (side by side on two workers, both would compile them). The units are
 # handed out heaviest first (`GROUP_SECONDS`: a unit's summed test seconds, setup included, in
-# `make test` runs on 2 CPU cores with the compile flag above, on a machine busy with other work
-# too: their order is what counts; units under 5 s are left out, they go last;
+# `make test` runs on 2 CPU cores with the compile flag above, mean of 2, on a machine busy with
+# other work too: their order is what counts; units under 5 s are left out, they go last;
 # `pytest_collection_modifyitems` orders the tests so), so that no long unit starts last while
 # the other worker has nothing left to do. (Not
 # `--dist loadgroup` with `xdist_group` marks: pytest-xdist 3.8 puts the group into
@@ -110,11 +110,11 @@ SHARED_GROUPS = {
     ),
 }  # fmt: skip
 GROUP_SECONDS = {
-    "tiny": 390, "test_compile_optim": 300, "test_isa_variants": 142, "test_dynamics": 117,
-    "online": 105, "test_distributed": 70, "test_parallel": 60, "test_bad_input": 46,
-    "test_evolution": 37, "test_feasibility": 37, "test_examples": 36, "test_catch_success": 34,
-    "test_basis": 26, "test_linalg": 19, "test_solvers": 16, "test_shipped": 15, "test_ik": 15,
-    "test_compile_interp": 12, "test_retarget": 7,
+    "tiny": 445, "test_compile_optim": 357, "test_isa_variants": 123, "test_dynamics": 106,
+    "online": 106, "test_distributed": 65, "test_parallel": 58, "test_bad_input": 39,
+    "test_evolution": 34, "test_feasibility": 34, "test_catch_success": 32, "test_examples": 30,
+    "test_basis": 20, "test_linalg": 18, "test_solvers": 15, "test_shipped": 14, "test_ik": 13,
+    "test_compile_interp": 11, "test_retarget": 6,
 }  # fmt: skip
 _GROUP_OF = {m: g for g, modules in SHARED_GROUPS.items() for m in modules}
 
