@@ -86,31 +86,35 @@ def pytest_unconfigure(config):
 # the same programs: those form one unit (`SHARED_GROUPS`, `pytest_xdist_make_scheduler`), so
 # they run one after another on one worker and the later ones find the first one's compiles in
 # the test run's XLA cache (side by side on two workers, both would compile them). The units are
-# handed out heaviest first (`GROUP_SECONDS`: seconds in `make test` runs on 2 CPU cores with the
-# compile flag above, mean of 3; `pytest_collection_modifyitems` orders the tests
-# so), so that no long unit starts last while the other worker has nothing left to do. (Not
+# handed out heaviest first (`GROUP_SECONDS`: a unit's summed test seconds, setup included, in
+# `make test` runs on 2 CPU cores with the compile flag above, mean of 2, on a machine busy with
+# other work too: their order is what counts; units under 5 s are left out, they go last;
+# `pytest_collection_modifyitems` orders the tests so), so that no long unit starts last while
+# the other worker has nothing left to do. (Not
 # `--dist loadgroup` with `xdist_group` marks: pytest-xdist 3.8 puts the group into
 # `item._nodeid`, which pytest 9 no longer reads, so every test would be a unit of its own and
 # module fixtures would be built on both workers.)
 SHARED_GROUPS = {
     # configs/tiny.yaml: test_train trains it first (setup programs, generation step, synthesised
     # demonstrations); the report of test_report's synthetic run (the tiny run's settings and
-    # sizes) draws what the notebook, which trains the tiny run again, draws too
+    # sizes) draws what the notebook, which trains the tiny run again, draws too; the documents'
+    # commands train the tiny run and report on it, and train on the imported sample at the sizes
+    # of test_import's training (`test_docs_commands.SUBSTITUTED`)
     "tiny": (
         "test_train", "test_numerical_faults", "test_demos", "test_report", "test_notebook",
+        "test_import", "test_docs_commands",
     ),
     # online_support's cached query, reach checker and catcher (`functools.cache`: per process)
-    "online": ("test_online", "test_catching", "test_export"),
+    "online": (
+        "test_online", "test_catching", "test_export", "test_online_limits", "test_simulate",
+    ),
 }  # fmt: skip
 GROUP_SECONDS = {
-    "tiny": 112, "test_compile_optim": 77, "test_dynamics": 66, "online": 33,
-    "test_examples": 32, "test_parallel": 31, "test_evolution": 26, "test_basis": 19,
-    "test_import": 17, "test_compile_interp": 7, "test_ik": 6, "test_bad_input": 5,
-    "test_retarget": 5,
-    # its capped runs (a pytest subprocess per ISA): 62 s for SSE4.2 on 2 otherwise idle cores
-    "test_isa_variants": 62,
-    # its 2-process runs, alone on 2 otherwise idle cores with an empty cache
-    "test_distributed": 44,
+    "tiny": 445, "test_compile_optim": 357, "test_isa_variants": 123, "test_dynamics": 106,
+    "online": 106, "test_distributed": 65, "test_parallel": 58, "test_bad_input": 39,
+    "test_evolution": 34, "test_feasibility": 34, "test_catch_success": 32, "test_examples": 30,
+    "test_basis": 20, "test_linalg": 18, "test_solvers": 15, "test_shipped": 14, "test_ik": 13,
+    "test_compile_interp": 11, "test_retarget": 6,
 }  # fmt: skip
 _GROUP_OF = {m: g for g, modules in SHARED_GROUPS.items() for m in modules}
 

@@ -461,9 +461,10 @@ def _child_single() -> dict:
         make_sharded_generation_step(*bfgs, devices=d).lower(db0, cond, np.int32(1)) is not None
         for d in (1, N_DEVICES)
     ]
+    # (the 4-device step is `sharded` itself: its trace is kept, not made again)
     resident = {
-        str(d): _run_resident(make_sharded_generation_step(*args, devices=d), db0, cond, d)
-        for d in (1, N_DEVICES)
+        "1": _run_resident(make_sharded_generation_step(*args, devices=1), db0, cond, 1),
+        str(N_DEVICES): _run_resident(sharded, db0, cond, N_DEVICES),
     }
     return {
         "bfgs_lowers": lowered,
