@@ -46,6 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from evojax_motion.compiler.basis import pca_basis  # noqa: E402
+from evojax_motion.compiler.optimisation import LIMIT_TOL  # noqa: E402  (its own test)
 from evojax_motion.motion.database import humans_only  # noqa: E402
 from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
@@ -148,8 +149,6 @@ def summarise(res: dict, lower, upper, targets) -> dict:
     lm, hm, om, oa = res["learned"], res["human"], res["optimised"], res["optimised_all"]
     use = lm.reachable & lm.ok & np.asarray(om.finite) & np.asarray(oa.finite) & hm.ok
     q_o = np.asarray(om.q, np.float64)[use]
-    from evojax_motion.compiler.optimisation import LIMIT_TOL  # the compiler's own test
-
     outside_o = np.any((q_o < lower - LIMIT_TOL) | (q_o > upper + LIMIT_TOL), axis=(1, 2))
     within_o = np.asarray(om.within_limits)[use]
     c_l, c_h, c_o = lm.cost[use], hm.cost[use], np.asarray(om.cost)[use]

@@ -173,6 +173,15 @@ def run_variant(settings, robot, dyn, grid, basis, boundary, ref_cost, interp_co
     }
 
 
+def variant_settings(cfg, name: str) -> OptimSettings:
+    """The compiler settings of variant ``name``: ``shipped*`` ones are ``cfg``'s with their
+    overrides, the others `OptimSettings` defaults with theirs."""
+    overrides = VARIANTS[name] or {}
+    if name.startswith("shipped"):
+        return dataclasses.replace(cfg.compiler, **overrides)
+    return OptimSettings(**overrides)
+
+
 def evolution_runs(report: dict, cfg, names: list, conditions: int, generations: int) -> None:
     """``generations`` generations of ``cfg``'s evolution (``conditions`` conditions, as `train`
     runs them) with the compiler of each ``shipped*`` variant of ``names``, one after another
@@ -180,12 +189,11 @@ def evolution_runs(report: dict, cfg, names: list, conditions: int, generations:
     (median after the first) and the database's mean cost after each generation."""
     from benchmarks.generations_per_sec import build, time_generations
 
+    cfg, robot, dyn, db, conds = build(cfg, conditions)  # the variants differ in the compiler only
     for name in names:
         if not name.startswith("shipped"):
             continue
-        overrides = VARIANTS[name] or {}
-        cfg_v = dataclasses.replace(cfg, compiler=dataclasses.replace(cfg.compiler, **overrides))
-        cfg_v, robot, dyn, db, conds = build(cfg_v, conditions)
+        cfg_v = dataclasses.replace(cfg, compiler=variant_settings(cfg, name))
         run = time_generations(cfg_v, robot, dyn, db, conds, generations)
         report["variants"][name]["evolution"] = {
             k: run[k] for k in ("generations_per_s", "seconds_per_generation", "db_cost_mean")
@@ -291,13 +299,7 @@ def main(argv=None):
     out = Path(args.out) if args.out else RESULTS / f"optimality_{plat}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     for name in names:
-        overrides = VARIANTS[name]
-        if overrides is None:
-            settings = cfg.compiler
-        elif name.startswith("shipped"):
-            settings = dataclasses.replace(cfg.compiler, **overrides)
-        else:
-            settings = OptimSettings(**overrides)
+        settings = variant_settings(cfg, name)
         res = run_variant(
             settings, robot, dyn, grid, basis, boundary, ref.cost, interp_cost, args.repeats
         )
