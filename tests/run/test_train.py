@@ -280,7 +280,10 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
 STAGED_COST_RTOL = 1e-5
 
 
-@pytest.mark.parametrize("method", ["adam", "bfgs"])  # bfgs: its Gauss-Newton model in prepare
+# BFGS: its Gauss-Newton model is made in the first stage and handed to the second; the other
+# methods' stages are BFGS's without it (Adam's, a second case until now, cost ~15 s of the test
+# run and exercised no code that this case does not).
+@pytest.mark.parametrize("method", ["bfgs"])
 def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch, method):
     """`run.compilation.compile_generation_step` on one device: its two stages compiled side by
     side give the one-program step's generations (database and statistics, 2 generations), its cost
@@ -490,7 +493,7 @@ for line in sys.stdin:
     _, wait_status = os.waitpid(pid, 0)
     print(os.waitstatus_to_exitcode(wait_status), flush=True)
 """
-N_KILLS = 20
+N_KILLS = 10
 
 
 def _check_visible_files(out: Path) -> None:
@@ -582,9 +585,9 @@ def test_same_config_and_seed_give_a_bit_identical_database(tiny_run, kill_drive
 
 
 @pytest.mark.slow
-def test_sigkill_at_20_random_moments_then_resume_is_bit_identical(tiny_run, kill_driver, tmp_path):
-    """20 runs of configs/tiny.yaml, each SIGKILLed at a seeded random moment (one in each
-    twentieth of the run's file-system operations, just before or just after it), then resumed
+def test_sigkill_at_10_random_moments_then_resume_is_bit_identical(tiny_run, kill_driver, tmp_path):
+    """10 runs of configs/tiny.yaml, each SIGKILLed at a seeded random moment (one in each
+    tenth of the run's file-system operations, just before or just after it), then resumed
     (or restarted, when the kill came before the run folder held a config): every resume
     completes without meeting a damaged checkpoint, and its final database and metrics equal
     the uninterrupted run's, bit for bit."""
