@@ -23,7 +23,7 @@ RUN_TIMEOUT_S = 1200  # the whole execution, kernel start and shutdown included
 _CHILD = """
 import os, sys
 import nbclient, nbformat
-from jupyter_core.utils import ensure_async, run_sync
+from nbclient.util import ensure_async, run_sync
 nb = nbformat.read(sys.argv[1], as_version=4)
 client = nbclient.NotebookClient(
     nb, timeout=int(sys.argv[3]), kernel_name="python3",
