@@ -281,8 +281,8 @@ STAGED_COST_RTOL = 1e-5
 
 
 # BFGS: its Gauss-Newton model is made in the first stage and handed to the second; the other
-# methods' stages are BFGS's without it (Adam's, a second case until now, cost ~15 s of the test
-# run and exercised no code that this case does not).
+# methods' stages are BFGS's without it (an Adam case would cost ~15 s of the test run and
+# exercise no code that this one does not).
 @pytest.mark.parametrize("method", ["bfgs"])
 def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch, method):
     """`run.compilation.compile_generation_step` on one device: its two stages compiled side by
