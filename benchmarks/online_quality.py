@@ -46,8 +46,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from evojax_motion.compiler.basis import pca_basis  # noqa: E402
-from evojax_motion.compiler.optimisation import LIMIT_TOL  # noqa: E402  (its own test)
 from evojax_motion.motion.database import humans_only  # noqa: E402
+from evojax_motion.motion.feasibility import outside_joint_range  # noqa: E402
 from evojax_motion.online.generation import (  # noqa: E402
     build_problem,
     exact_matmuls,
@@ -148,8 +148,7 @@ def violations(q: np.ndarray, lower, upper) -> int:
 def summarise(res: dict, lower, upper, targets) -> dict:
     lm, hm, om, oa = res["learned"], res["human"], res["optimised"], res["optimised_all"]
     use = lm.reachable & lm.ok & np.asarray(om.finite) & np.asarray(oa.finite) & hm.ok
-    q_o = np.asarray(om.q, np.float64)[use]
-    outside_o = np.any((q_o < lower - LIMIT_TOL) | (q_o > upper + LIMIT_TOL), axis=(1, 2))
+    outside_o = outside_joint_range(np.asarray(om.q)[use], lower, upper)
     within_o = np.asarray(om.within_limits)[use]
     c_l, c_h, c_o = lm.cost[use], hm.cost[use], np.asarray(om.cost)[use]
     c_a = np.asarray(oa.cost)[use]

@@ -76,6 +76,13 @@ def row_peaks(db: Database, dyn: Dynamics) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(out_qd), np.concatenate(out_tau)
 
 
+def outside_joint_range(q, lower, upper) -> np.ndarray:
+    """``(N,)`` bool: the motions of ``q (N, T, J)`` with a sample outside ``[lower, upper]``
+    (``(J,)`` [rad], +`compiler.optimisation.LIMIT_TOL`), compared in float64."""
+    q = np.asarray(q, np.float64)
+    return np.any((q < lower - LIMIT_TOL) | (q > upper + LIMIT_TOL), axis=(1, 2))
+
+
 def count_over_limits(db: Database, robot, dyn: Dynamics, rows=None) -> OverLimits:
     """How many valid rows of ``db`` (or of the boolean mask ``rows (N,)`` among them, e.g.
     `motion.database.human_mask`) are over a joint, velocity or torque limit of ``robot``
@@ -85,8 +92,7 @@ def count_over_limits(db: Database, robot, dyn: Dynamics, rows=None) -> OverLimi
         sel = sel & np.asarray(rows, bool)
     sub = Database(*(np.asarray(a)[sel] for a in db))
     q = np.asarray(sub.q, np.float64)
-    lower, upper = np.asarray(robot.lower), np.asarray(robot.upper)
-    joint = np.any((q < lower - LIMIT_TOL) | (q > upper + LIMIT_TOL), axis=(1, 2))
+    joint = outside_joint_range(q, np.asarray(robot.lower), np.asarray(robot.upper))
     qd_max, tau_max = np.asarray(robot.velocity_limit), np.asarray(robot.torque_limit)
     if q.shape[0] and (np.isfinite(qd_max).any() or np.isfinite(tau_max).any()):
         pqd, ptau = row_peaks(sub, dyn)

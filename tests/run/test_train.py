@@ -283,8 +283,10 @@ STAGED_COST_RTOL = 1e-5
 # BFGS: its Gauss-Newton model is made in the first stage and handed to the second; the other
 # methods' stages are BFGS's without it (an Adam case would cost ~15 s of the test run and
 # exercise no code that this one does not).
-@pytest.mark.parametrize("method", ["bfgs"])
-def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch, method):
+STAGED_METHOD = "bfgs"
+
+
+def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch):
     """`run.compilation.compile_generation_step` on one device: its two stages compiled side by
     side give the one-program step's generations (database and statistics, 2 generations), its cost
     analysis is the two programs' together, and a second compile traces neither stage again
@@ -301,7 +303,7 @@ def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypa
     from evojax_motion.settings import load_config
 
     assert compile_cache.traced_cache_dir() is not None  # conftest's test-run cache
-    cfg = load_config(TINY, [f"compiler.method={method}"])
+    cfg = load_config(TINY, [f"compiler.method={STAGED_METHOD}"])
     robot, dyn = make_robot_dynamics(cfg)
     db, conditions, *_ = initial_state(cfg, robot, dyn)
     staged = compile_generation_step(cfg, robot, dyn, db, conditions)
