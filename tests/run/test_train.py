@@ -280,12 +280,6 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
 STAGED_COST_RTOL = 1e-5
 
 
-# BFGS: its Gauss-Newton model is made in the first stage and handed to the second; the other
-# methods' stages are BFGS's without it (an Adam case would cost ~15 s of the test run and
-# exercise no code that this one does not).
-STAGED_METHOD = "bfgs"
-
-
 def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch):
     """`run.compilation.compile_generation_step` on one device: its two stages compiled side by
     side give the one-program step's generations (database and statistics, 2 generations), its cost
@@ -303,7 +297,11 @@ def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypa
     from evojax_motion.settings import load_config
 
     assert compile_cache.traced_cache_dir() is not None  # conftest's test-run cache
-    cfg = load_config(TINY, [f"compiler.method={STAGED_METHOD}"])
+    # The tiny config as trained (its method, Adam): the two stages are the tiny run's programs,
+    # held by the test run's XLA cache, so only the one-program step compiles here (with BFGS,
+    # whose Gauss-Newton model crosses from the first stage to the second, both stages compile
+    # too: 51 s of XLA compile in the test run against 6.4 s, 3.6 s of it the shared stages).
+    cfg = load_config(TINY)
     robot, dyn = make_robot_dynamics(cfg)
     db, conditions, *_ = initial_state(cfg, robot, dyn)
     staged = compile_generation_step(cfg, robot, dyn, db, conditions)
