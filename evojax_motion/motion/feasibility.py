@@ -13,14 +13,14 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from evojax_motion.compile_options import one_shot_jit
 from evojax_motion.compiler.optimisation import LIMIT_TOL
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.motion.database import Database
-from evojax_motion.motion.timegrid import derivatives, make_time_grid
+from evojax_motion.motion.objective import trajectory_measures
+from evojax_motion.motion.timegrid import make_time_grid
 
 # Rows per call of the torque program (one compilation for any database size).
 CHUNK_ROWS = 256
@@ -41,13 +41,7 @@ class OverLimits(NamedTuple):
 def _peaks(dyn: Dynamics, q, duration):
     """Peak ``|qd|`` and ``|tau|`` per row: ``q (n, T, J)``, ``duration (n,)`` -> ``(n, J)`` x 2."""
     grid = make_time_grid(q.shape[1], q.dtype)
-
-    def one(q1, d):
-        qd, qdd = derivatives(grid, q1, d)
-        tau = jax.vmap(dyn.inverse)(q1, qd, qdd)
-        return jnp.max(jnp.abs(qd), axis=0), jnp.max(jnp.abs(tau), axis=0)
-
-    return jax.vmap(one)(q, duration)
+    return jax.vmap(lambda q1, d: trajectory_measures(dyn, grid, q1, d)[2:])(q, duration)
 
 
 _peaks_program = one_shot_jit(_peaks, static_argnums=0)
@@ -83,10 +77,12 @@ def outside_joint_range(q, lower, upper) -> np.ndarray:
     return np.any((q < lower - LIMIT_TOL) | (q > upper + LIMIT_TOL), axis=(1, 2))
 
 
-def count_over_limits(db: Database, robot, dyn: Dynamics, rows=None) -> OverLimits:
+def count_over_limits(db: Database, robot, dyn: Dynamics, rows=None, peaks=None) -> OverLimits:
     """How many valid rows of ``db`` (or of the boolean mask ``rows (N,)`` among them, e.g.
     `motion.database.human_mask`) are over a joint, velocity or torque limit of ``robot``
-    (`model.robot.Robot`), with torques from ``dyn``."""
+    (`model.robot.Robot`), with torques from ``dyn``. ``peaks``: ``(peak |qd|, peak |tau|)``,
+    each ``(N, J)``, of every row of ``db`` where already computed (`row_peaks`;
+    `motion.objective.CostProgram`), else None."""
     sel = np.asarray(db.valid, bool)
     if rows is not None:
         sel = sel & np.asarray(rows, bool)
@@ -94,7 +90,9 @@ def count_over_limits(db: Database, robot, dyn: Dynamics, rows=None) -> OverLimi
     q = np.asarray(sub.q, np.float64)
     joint = outside_joint_range(q, np.asarray(robot.lower), np.asarray(robot.upper))
     qd_max, tau_max = np.asarray(robot.velocity_limit), np.asarray(robot.torque_limit)
-    if q.shape[0] and (np.isfinite(qd_max).any() or np.isfinite(tau_max).any()):
+    if peaks is not None:
+        pqd, ptau = (np.asarray(p, np.float64)[sel] for p in peaks)
+    elif q.shape[0] and (np.isfinite(qd_max).any() or np.isfinite(tau_max).any()):
         pqd, ptau = row_peaks(sub, dyn)
     else:
         pqd = ptau = np.zeros_like(q[:, 0])

@@ -10,7 +10,7 @@ N m): the time average of ``|tau_j|`` summed over the joints, ``sum_j (1/D) int 
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -45,10 +45,32 @@ def torque_sum(grid: TimeGrid, tau: jnp.ndarray) -> jnp.ndarray:
     return jnp.sum(w[:, None] * jnp.abs(tau))
 
 
+def trajectory_measures(dyn: Dynamics, grid: TimeGrid, q: jnp.ndarray, duration) -> tuple:
+    """One primitive's eq. 5 cost, Fig. 5 torque sum and peak ``|qd|``, ``|tau|`` over its
+    samples, from one inverse dynamics pass: ``q: (T, J)``, ``duration: ()`` -> ``((), (), (J,),
+    (J,))`` (`TrajectoryCosts`' fields)."""
+    qd, qdd = derivatives(grid, q, duration)
+    tau = jax.vmap(dyn.inverse)(q, qd, qdd)
+    peaks = jnp.max(jnp.abs(qd), axis=0), jnp.max(jnp.abs(tau), axis=0)
+    return cost_from_torques(grid, tau, duration), torque_sum(grid, tau), *peaks
+
+
+class TrajectoryCosts(NamedTuple):
+    """Per trajectory: eq. 5 ``cost`` (n,) [N^2 m^2 s], Fig. 5 ``torque_sum`` (n,) [N m], and the
+    peaks over the T samples of ``|qd|`` (``peak_velocity`` (n, J) [rad/s]) and of ``|tau|``
+    (``peak_torque`` (n, J) [N m]), from the same torques."""
+
+    cost: np.ndarray
+    torque_sum: np.ndarray
+    peak_velocity: np.ndarray
+    peak_torque: np.ndarray
+
+
 class CostProgram:
-    """``costs(q (n, T, J), duration (n,)) -> (eq. 5 cost (n,), Fig. 5 torque sum (n,))`` for any
-    n <= ``rows``: one compiled program of ``rows`` trajectories (padded with resting ones) that
-    serves a run's synthesised demonstrations, its human costs and its human-only baseline.
+    """``costs(q (n, T, J), duration (n,)) -> TrajectoryCosts`` for any n <= ``rows``: one
+    compiled program of ``rows`` trajectories (padded with resting ones) that serves a run's
+    synthesised demonstrations, its human costs and limit check (`motion.feasibility`) and its
+    human-only baseline.
     ``cache``: `run.cache.traced_program`'s ``parts`` (e.g. `run.workflow.cache_parts` of a
     run), to keep the traced program across processes; None: in this process only.
     `precompile` compiles it for trajectories of ``samples`` x ``joints`` before the data exist.
@@ -58,8 +80,7 @@ class CostProgram:
         from evojax_motion.run.cache import traced_program
 
         def one(q, d):
-            tau = trajectory_torques(dyn, grid, q, d)
-            return cost_from_torques(grid, tau, d), torque_sum(grid, tau)
+            return trajectory_measures(dyn, grid, q, d)
 
         options = one_shot()  # run a few times a run
 
@@ -84,5 +105,4 @@ class CostProgram:
         q_pad[:n] = q
         d_pad = np.ones(self.rows, np.float32)
         d_pad[:n] = duration
-        cost, tsum = self._batch(q_pad, d_pad)
-        return np.asarray(cost)[:n], np.asarray(tsum)[:n]
+        return TrajectoryCosts(*(np.asarray(a)[:n] for a in self._batch(q_pad, d_pad)))

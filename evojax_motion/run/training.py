@@ -185,10 +185,12 @@ def human_only_baseline(costs, conditions) -> dict:
     conditions: what the demonstrations alone give before any evolution (``conditions.human_q``).
     ``costs``: `motion.objective.CostProgram`.
     """
-    cost, tsum = costs(conditions.human_q, conditions.boundary.duration)
+    measured = costs(conditions.human_q, conditions.boundary.duration)
     return {
-        "human_only_cost_mean": _json_value(np.mean(np.asarray(cost, np.float64))),
-        "human_only_torque_sum_mean": _json_value(np.mean(np.asarray(tsum, np.float64))),
+        "human_only_cost_mean": _json_value(np.mean(np.asarray(measured.cost, np.float64))),
+        "human_only_torque_sum_mean": _json_value(
+            np.mean(np.asarray(measured.torque_sum, np.float64))
+        ),
     }
 
 
@@ -208,7 +210,8 @@ def initial_state(
 
     The human database (``demos_file`` or synthetic demonstrations), each primitive's eq. 5 cost
     with this run's dynamics, the condition set drawn with the key ``fold_in(key(seed), 1)``, the
-    database of capacity ``n_human + m`` with empty evolved slots, and `human_only_baseline`.
+    database of capacity ``n_human + m`` with empty evolved slots, and `human_only_baseline`;
+    logs how many demonstrations are over a limit of the robot (from the costs' own torques).
     ``setup``: `run.compilation.setup_programs` made (and perhaps being compiled) beforehand,
     used where its sizes are the demonstrations'. ``on_traced()``: called once, when the
     synthesis of the demonstrations is traced, else once they are read and checked
@@ -220,6 +223,7 @@ def initial_state(
     from evojax_motion.evolution.conditions import make_conditions
     from evojax_motion.evolution.step import init_evolved_slots, with_search_candidates
     from evojax_motion.motion.database import Database, nonfinite_rows
+    from evojax_motion.motion.feasibility import count_over_limits, over_limits_line
     from evojax_motion.run.workflow import cache_parts, check_samples, demonstrations
 
     t0 = time.perf_counter()
@@ -240,7 +244,8 @@ def initial_state(
     if setup is None or humans.q.shape != setup.sizes:
         setup = compilation.setup_programs(cfg, robot, dyn, humans.q.shape)
     grid, costs = setup.grid, setup.costs
-    humans = humans._replace(cost=costs(humans.q, humans.duration)[0].astype(np.float32))
+    measured = costs(humans.q, humans.duration)
+    humans = humans._replace(cost=measured.cost.astype(np.float32))
     bad = nonfinite_rows(humans)  # a numerical failure drops that demonstration, not the run
     for i in bad:
         msg = f"demonstration {i}: NaN/inf in its trajectory, condition or cost; not used"
@@ -248,6 +253,8 @@ def initial_state(
     if bad.size == humans.valid.size:
         raise UserError("demonstrations: expected at least one finite demonstration, got none")
     humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
+    peaks = [np.delete(p, bad, axis=0) for p in (measured.peak_velocity, measured.peak_torque)]
+    log(over_limits_line(count_over_limits(humans, robot, dyn, peaks=peaks)))
     t1 = time.perf_counter()
     conditions = make_conditions(
         humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, programs=setup.conditions
@@ -407,8 +414,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         from tqdm.auto import tqdm
 
         from evojax_motion.evolution.step import with_search_candidates
-        from evojax_motion.motion.database import human_mask, save_database
-        from evojax_motion.motion.feasibility import count_over_limits, over_limits_line
+        from evojax_motion.motion.database import save_database
         from evojax_motion.run import checkpoint as ck
 
         restored, problems, manager = None, [], None
@@ -427,8 +433,6 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             made = shared_initial_state(cfg, robot, dyn, setup, cue)
             db, conditions, meta, baseline, timings = made
             start, metrics = 0, []
-            if primary:
-                log(over_limits_line(count_over_limits(db, robot, dyn, human_mask(db))))
     except BaseException:
         if early is not None:
             early.wait()  # its thread ends before the error reaches the user
