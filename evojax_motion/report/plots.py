@@ -8,7 +8,8 @@
   with the human-only interpolation as a reference.
 
 The ``*_figure`` functions return the matplotlib figure (tests inspect it); the ``plot_*`` ones
-write it.
+write it. Both are plain ``Figure`` objects: a training run that writes them never imports
+pyplot.
 """
 
 from __future__ import annotations
@@ -16,17 +17,23 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from evojax_motion.run.checkpoint import atomic_write_bytes
 
 
-def save_figure(fig, path: Path) -> Path:
-    """Write ``fig`` as PNG to ``path`` atomically and close it."""
+def save_figure(fig, path: Path, crop: bool = True) -> Path:
+    """Write ``fig`` as PNG to ``path`` atomically and close it (where pyplot made it).
+
+    ``crop``: to its contents (``bbox_inches="tight"``: the figure is drawn twice); False for
+    a figure laid out already (a layout engine or fixed margins)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight" if crop else None)
+    if fig.canvas.manager is not None:  # a pyplot figure: pyplot holds it until closed
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
     return atomic_write_bytes(path, buf.getvalue())
 
 
@@ -42,7 +49,8 @@ def costs_figure(metrics: list[dict], baseline: dict | None = None):
     def col(name):
         return np.array([np.nan if r.get(name) is None else r[name] for r in metrics], float)
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.9), layout="constrained")
+    fig = Figure(figsize=(10, 3.9), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2)
     db_label = "database (evolved slots)"
     ax1.plot(gen, col("torque_sum_mean"), "o-", color="tab:red", label=db_label)
     ax1.set_xlabel("generation")
@@ -74,7 +82,7 @@ def plot_costs(metrics: list[dict], path: str | Path, baseline: dict | None = No
     ``baseline``: ``human_only_torque_sum_mean`` / ``human_only_cost_mean`` (the human-only
     interpolation of the same conditions), drawn as horizontal reference lines.
     """
-    return save_figure(costs_figure(metrics, baseline), Path(path))
+    return save_figure(costs_figure(metrics, baseline), Path(path), crop=False)
 
 
 def joint_angles_figure(
@@ -92,7 +100,8 @@ def joint_angles_figure(
     panel's legend names the curves of every panel (the same in each)."""
     t = np.linspace(0.0, float(duration), q_last.shape[0])
     j = q_last.shape[1]
-    fig, axes = plt.subplots(j, 1, figsize=(6, 1.5 * j + 0.6), sharex=True, squeeze=False)
+    fig = Figure(figsize=(6, 1.5 * j + 0.6))
+    axes = fig.subplots(j, 1, sharex=True, squeeze=False)
     for k, ax in enumerate(axes[:, 0]):
         if q_human is not None:
             ax.plot(t, np.degrees(q_human[:, k]), ":", color="tab:blue", lw=1, label="human only")
@@ -130,4 +139,4 @@ def plot_joint_angles(
         last_label=last_label,
         title=title,
     )
-    return save_figure(fig, Path(path))
+    return save_figure(fig, Path(path))  # cropped: joint names of any length fit

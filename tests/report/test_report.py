@@ -344,36 +344,26 @@ BASELINE = {"human_only_cost_mean": 14.0, "human_only_torque_sum_mean": 11.5}
 
 @pytest.mark.parametrize("baseline", [None, BASELINE])
 def test_fig5_legend_names_every_curve(baseline):
-    import matplotlib.pyplot as plt
-
     from evojax_motion.report.plots import costs_figure
 
     fig = costs_figure(_metrics([13.7, 13.45, 13.36, 13.36], [10, 11, 11, 11]), baseline)
-    try:
-        names = {t.get_text() for legend in fig.legends for t in legend.get_texts()}
-        lines = [line for ax in fig.axes for line in ax.get_lines()]
-        assert len(lines) == 3 + 2 * (baseline is not None)
-        for line in lines:  # an unlabelled line's label is "_child<n>"
-            assert line.get_label() in names, (line.get_label(), names)
-    finally:
-        plt.close(fig)
+    names = {t.get_text() for legend in fig.legends for t in legend.get_texts()}
+    lines = [line for ax in fig.axes for line in ax.get_lines()]
+    assert len(lines) == 3 + 2 * (baseline is not None)
+    for line in lines:  # an unlabelled line's label is "_child<n>"
+        assert line.get_label() in names, (line.get_label(), names)
 
 
 def test_joint_angle_legend_names_every_curve():
-    import matplotlib.pyplot as plt
-
     from evojax_motion.report.plots import joint_angles_figure
 
     rng = np.random.default_rng(0)
     q = [rng.normal(size=(T, 3)) for _ in range(3)]
     fig = joint_angles_figure(q[0], q[1], 0.7, ["a", "b", "c"], q_human=q[2])
-    try:
-        names = {t.get_text() for t in fig.axes[0].get_legend().get_texts()}
-        for ax in fig.axes:
-            for line in ax.get_lines():
-                assert line.get_label() in names, (line.get_label(), names)
-    finally:
-        plt.close(fig)
+    names = {t.get_text() for t in fig.axes[0].get_legend().get_texts()}
+    for ax in fig.axes:
+        for line in ax.get_lines():
+            assert line.get_label() in names, (line.get_label(), names)
 
 
 def _tradeoff_labels(metrics):
