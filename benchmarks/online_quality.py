@@ -225,7 +225,7 @@ def plot(path: Path, res: dict, use, joint_names, summary: dict) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from evojax_motion.run.checkpoint import atomic_write_bytes
+    from evojax_motion.run.atomic import atomic_write_bytes
 
     lm, hm, om = res["learned"], res["human"], res["optimised"]
     c_l, c_h, c_o = lm.cost[use], hm.cost[use], np.asarray(om.cost)[use]
@@ -324,7 +324,7 @@ def main(argv=None) -> int:
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{args.name}.json"
-    from evojax_motion.run.checkpoint import atomic_write_text
+    from evojax_motion.run.atomic import atomic_write_text
 
     atomic_write_text(path, json.dumps(summary, indent=1))
     fig = plot(out_dir / f"{args.name}.png", res, use, model.robot.joint_names, summary)

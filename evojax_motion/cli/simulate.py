@@ -215,7 +215,7 @@ def cmd_simulate(args) -> int:
         except RenderUnavailable as e:  # --renderer mujoco without OpenGL
             raise UserError(f"--renderer mujoco: {e}") from None
         doc = _result_document(model, motion, about, args, settings, rollout, summary, renderer)
-        from evojax_motion.run.checkpoint import atomic_write_text
+        from evojax_motion.run.atomic import atomic_write_text
 
         atomic_write_text(out / RESULT_FILE, json.dumps(_json_safe(doc), indent=1) + "\n")
         rows["written to"] = f"{out / RESULT_FILE}, {out / ANIMATION_FILE} ({renderer})"

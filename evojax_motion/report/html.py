@@ -44,7 +44,7 @@ def _summary_rows(data: RunData) -> list[tuple[str, str]]:
 
 def write_html(rep: Report, data: RunData) -> Path:
     """One self-contained page (images inlined as base64) of everything in ``rep``."""
-    from evojax_motion.run.checkpoint import atomic_write_text
+    from evojax_motion.run.atomic import atomic_write_text
 
     esc = html.escape
     parts = [

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from evojax_motion.run.checkpoint import atomic_write_bytes
+from evojax_motion.run.atomic import atomic_write_bytes
 
 
 def save_figure(fig, path: Path, crop: bool = True) -> Path:

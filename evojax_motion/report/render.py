@@ -339,7 +339,7 @@ def save_gif(images: np.ndarray, path: str | os.PathLike, fps: float = 20.0) -> 
     """Write ``images (F, H, W, 3) uint8`` as a looping GIF (Pillow), atomically."""
     from PIL import Image
 
-    from evojax_motion.run.checkpoint import atomic_write_bytes
+    from evojax_motion.run.atomic import atomic_write_bytes
 
     # An adaptive palette per frame (octree keeps small saturated areas such as the ball).
     frames = [

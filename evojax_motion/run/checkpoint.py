@@ -28,7 +28,7 @@ from evojax_motion.run.atomic import atomic_write_bytes, atomic_write_text
 
 __all__ = [
     "Restored",
-    "atomic_write_bytes",  # (here before `atomic`; plots, exports and reports import them here)
+    "atomic_write_bytes",  # `run.atomic`'s, for the checkpointing code (which imports orbax)
     "atomic_write_text",
     "open_manager",
     "restore_latest",

@@ -138,7 +138,7 @@ def write_trajectory(
 ) -> Path:
     """Write ``data`` to ``path`` in ``fmt`` (default: by suffix). Atomic; returns the path."""
     from evojax_motion.motion.database import atomic_savez
-    from evojax_motion.run.checkpoint import atomic_write_text
+    from evojax_motion.run.atomic import atomic_write_text
 
     path = Path(path)
     fmt = resolve_format(path, fmt)
