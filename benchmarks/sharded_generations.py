@@ -27,9 +27,9 @@ Usage (GPU host, all GPUs visible):
 CPU check of the script (forced host devices share the cores: correctness, not speed):
     XLA_FLAGS=--xla_force_host_platform_device_count=2 python benchmarks/sharded_generations.py \
         --config configs/tiny.yaml --sweep-conditions 12 --generations 2 --tag cpu2
-One GPU, the sharded step on one device against the unsharded step:
-    python benchmarks/sharded_generations.py --sweep-conditions 100000 --devices 1 --unsharded \
-        --generations 4 --tag gpu_h200_one_device
+The unsharded step on one GPU against the sharded step on 1, 2 and 4 (a 4-GPU host):
+    python benchmarks/sharded_generations.py --sweep-conditions 100000 --devices 1,2,4 \
+        --unsharded --generations 3 --tag h200x4
 Writes ``benchmarks/results/sharded_generations_<tag>.json`` (+ ``.md``) and prints the table.
 """
 

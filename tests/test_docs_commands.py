@@ -93,7 +93,8 @@ NOT_RUN: dict[str, str] = {
     "JAX_COORDINATOR_ADDRESS=host0:12345 EVOJAX_NUM_PROCESSES=16 EVOJAX_PROCESS_ID=8 "
     "CUDA_VISIBLE_DEVICES=0 evojax-motion train configs/catch_ball.yaml --out runs/catch "
     "--distributed": "one process of a 16-GPU run on 2 hosts",
-    f"{SHARDED} --tag h200x2": "a benchmark for several GPUs (minutes per point)",
+    f"{SHARDED} --sweep-conditions 100000 --devices 1,2,4 --unsharded --generations 3 "
+    "--tag h200x4": "a benchmark for several GPUs (minutes per point)",
     f"{SHARDED} --config configs/demo_small.yaml --generations 2 --sweep-conditions 10000 "
     "--devices 1,2 --tag h200x2_small": "a benchmark for several GPUs (minutes per point)",
 }
