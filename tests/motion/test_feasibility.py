@@ -186,6 +186,22 @@ def test_count_over_limits_of_human_rows(mahru):
     assert low.torque == expected > 0 and low.any >= expected
     assert f"{low.any} of {N_HUMAN}" in over_limits_line(low)
 
+    # as a run counts them: from the peaks of the cost program's own pass (`initial_state`)
+    from evojax_motion.motion.objective import CostProgram
+
+    measured = CostProgram(s["dyn"], s["grid"], N_HUMAN)(np.asarray(humans.q), humans.duration)
+    np.testing.assert_allclose(measured.peak_torque, ptau, rtol=REL_TOL)
+    np.testing.assert_allclose(measured.peak_velocity, pqd, rtol=REL_TOL)
+    given = count_over_limits(
+        humans, Low, s["dyn"], peaks=(measured.peak_velocity, measured.peak_torque)
+    )
+    assert given.torque == int(np.any(measured.peak_torque > Low.torque_limit, axis=1).sum())
+    assert abs(given.torque - low.torque) <= 1  # the row at the median may round either way
+    assert (given.rows, given.joint, given.velocity) == (low.rows, low.joint, low.velocity)
+    twice = 2 * measured.peak_torque  # the count is the given peaks', not recomputed ones
+    doubled = count_over_limits(humans, Low, s["dyn"], peaks=(measured.peak_velocity, twice))
+    assert doubled.torque == int(np.any(twice > Low.torque_limit, axis=1).sum()) > given.torque
+
 
 @pytest.mark.slow
 def test_tiny_run_keeps_evolved_rows_within_every_limit(tmp_path):
