@@ -4,6 +4,8 @@ catch point, boundary conditions) and its motions by interpolation (eq. 1-2), by
 
 from __future__ import annotations
 
+import functools
+from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -124,44 +126,67 @@ def condition_context(
     )
 
 
+@functools.cache
+def _programs() -> SimpleNamespace:
+    """The report's small computations as jitted programs (`compile_options.one_shot_jit`),
+    made at first use: run op by op, each of their hundreds of operations would be dispatched
+    (and compiled) on its own, seconds per call."""
+    from evojax_motion.compile_options import one_shot_jit
+    from evojax_motion.compiler.basis import pca_basis, select_neighbours
+    from evojax_motion.compiler.interpolation import compile_interpolation
+    from evojax_motion.linalg.precision import exact_matmuls
+    from evojax_motion.motion.objective import trajectory_measures
+    from evojax_motion.motion.timegrid import make_time_grid
+
+    def basis(condition, valid, q, duration, target, settings, n_components: int):
+        nb = select_neighbours(
+            condition, valid, target[None], settings.neighbours, settings.radius, settings.w_pos
+        )
+        return nb, pca_basis(q, duration, nb, n_components)
+
+    def interpolation(basis, boundary, samples: int, n_components: int):
+        grid = make_time_grid(samples)
+        return compile_interpolation(basis, boundary, grid, n_components=n_components).q
+
+    def measures(dyn, samples: int, q, duration):
+        return trajectory_measures(dyn, make_time_grid(samples), q, duration)[:2]
+
+    return SimpleNamespace(
+        basis=one_shot_jit(exact_matmuls(basis), static_argnums=(5, 6)),
+        interpolation=one_shot_jit(exact_matmuls(interpolation), static_argnums=(2, 3)),
+        measures=one_shot_jit(exact_matmuls(measures), static_argnums=(0, 1)),
+    )
+
+
 def neighbour_basis(db, target, basis_settings, n_components: int, exclude=None):
     """``(Neighbours, Basis)`` of one target on ``db`` (row ``exclude`` left out)."""
-    import jax.numpy as jnp
-
-    from evojax_motion.compiler.basis import pca_basis, select_neighbours
-
     valid = np.asarray(db.valid).copy()
     if exclude is not None:
         valid[exclude] = False
-    nb = select_neighbours(
-        jnp.asarray(db.condition),
-        jnp.asarray(valid),
-        jnp.asarray(target, jnp.float32)[None],
-        basis_settings.neighbours,
-        basis_settings.radius,
-        basis_settings.w_pos,
+    return _programs().basis()(
+        np.asarray(db.condition, np.float32),
+        valid,
+        np.asarray(db.q, np.float32),
+        np.asarray(db.duration, np.float32),
+        np.asarray(target, np.float32),
+        basis_settings,
+        n_components,
     )
-    basis = pca_basis(jnp.asarray(db.q), jnp.asarray(db.duration), nb, n_components)
-    return nb, basis
 
 
 def interpolate(db, ctx: Context, basis_settings, exclude=None) -> np.ndarray:
     """Eq. 1-2 trajectory ``(T, J)`` of the condition on ``db``."""
-    from evojax_motion.compiler.interpolation import compile_interpolation
-
     _, basis = neighbour_basis(db, ctx.target, basis_settings, INTERP_COMPONENTS, exclude)
-    out = compile_interpolation(basis, ctx.boundary, ctx.grid, n_components=INTERP_COMPONENTS)
-    return np.asarray(out.q[0])
+    samples = ctx.grid.s.shape[0]
+    q = _programs().interpolation()(basis, ctx.boundary, samples, INTERP_COMPONENTS)
+    return np.asarray(q[0])
 
 
 def motion_cost(ctx: Context, q) -> tuple[float, float]:
     """Eq. 5 cost and torque sum [N m] of ``q (T, J)``."""
-    import jax.numpy as jnp
-
-    from evojax_motion.motion.objective import cost_from_torques, torque_sum, trajectory_torques
-
-    tau = trajectory_torques(ctx.dyn, ctx.grid, jnp.asarray(q), ctx.duration)
-    return float(cost_from_torques(ctx.grid, tau, ctx.duration)), float(torque_sum(ctx.grid, tau))
+    q = np.asarray(q, np.float32)
+    cost, tsum = _programs().measures()(ctx.dyn, q.shape[0], q, np.float32(ctx.duration))
+    return float(cost), float(tsum)
 
 
 def optimise(data: RunData, ctx: Context) -> np.ndarray:
