@@ -41,7 +41,7 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -110,19 +110,46 @@ def _pct(x, ps=(50, 99)) -> dict:
     return {f"p{p}": float(np.percentile(x, p)) for p in ps}
 
 
+class Programs(NamedTuple):
+    """The jitted functions of every database's evaluation, made once (`make_programs`): the
+    databases have the same shapes, so the first one's compilations serve the others."""
+
+    catcher: Any  # `online.catching.make_catcher`'s
+    problem: Any  # `online.generation.build_problem`, jitted
+    optimiser: Any  # `compiler.optimisation.make_optimisation_compiler`'s, or None
+
+
+def make_programs(model, catch: CatchSettings, compiler) -> Programs:
+    """`Programs` of a loaded run (``model``: `online.generation.OnlineModel`); ``compiler``:
+    `config.CompilerSettings` of the optimisation reference (None: none)."""
+    from evojax_motion.compiler.optimisation import make_optimisation_compiler
+
+    robot = model.robot
+    catcher = make_catcher(
+        robot, model.dyn, model.grid, model.basis_settings, model.settings, catch
+    )
+    problem = jax.jit(exact_matmuls(build_problem), static_argnums=(0, 7, 8))
+    optimiser = None
+    if compiler is not None:
+        optimiser = make_optimisation_compiler(
+            model.dyn, model.grid, robot.lower, robot.upper, compiler
+        )
+    return Programs(catcher, problem, optimiser)
+
+
 def evaluate_database(
-    model, db: Database, p0, v0, catch: CatchSettings, sim: SimSettings, compiler, n_optimise: int
+    model, db: Database, p0, v0, programs: Programs, sim: SimSettings, n_optimise: int
 ) -> dict:
     """Plan, simulate and summarise the throws ``p0, v0 (N, 3)`` against ``db`` (numpy rows).
 
     ``model``: an `online.generation.OnlineModel` (robot, dyn, grid, basis_settings, settings);
-    ``compiler``: `config.CompilerSettings` of the optimisation reference (None: skipped).
+    ``programs``: `make_programs`' (the optimisation reference skipped where it has none).
+    ``compile_s``: the first plan's wall time (the catcher's compile where no database before
+    this one compiled it).
     """
     robot = model.robot
     dev_db = online_database(db)
-    catcher = make_catcher(
-        robot, model.dyn, model.grid, model.basis_settings, model.settings, catch
-    )
+    catcher = programs.catcher
     q0 = np.asarray(robot.rest, np.float32)[None]
     t0 = time.perf_counter()
     jax.block_until_ready(catcher(dev_db, p0[:1], v0[:1], q0))
@@ -193,27 +220,24 @@ def evaluate_database(
         "planning_after_idle_s": _pct(idle_s),
         "compile_s": compile_s,
     }  # fmt: skip
-    if compiler is not None and n_optimise > 0 and planned.any():
-        out["optimised"] = optimise_subset(model, dev_db, rows, compiler, n_optimise)
+    if programs.optimiser is not None and n_optimise > 0 and planned.any():
+        out["optimised"] = optimise_subset(model, dev_db, rows, programs, n_optimise)
     return out
 
 
-def optimise_subset(model, dev_db, rows, compiler, k: int) -> dict:
+def optimise_subset(model, dev_db, rows, programs: Programs, k: int) -> dict:
     """The optimisation compiler on the first ``k`` planned throws' basis and BCs."""
-    from evojax_motion.compiler.optimisation import make_optimisation_compiler
-
     use = [r for r in rows if r["planned"]][:k]
     robot = model.robot
     lower, upper = (jnp.asarray(a) for a in joint_limits_f32(robot))
     points = jnp.asarray(np.stack([r["catch_point"] for r in use]), jnp.float32)
     dur = jnp.asarray([r["duration"] for r in use], jnp.float32)
     q0 = jnp.tile(jnp.asarray(robot.rest, jnp.float32)[None], (len(use), 1))
-    basis, bc, _ = jax.jit(exact_matmuls(build_problem), static_argnums=(0, 7, 8))(
+    basis, bc, _ = programs.problem(
         model.dyn, dev_db, points, dur, q0, lower, upper, model.basis_settings, model.settings
     )
-    opt = make_optimisation_compiler(model.dyn, model.grid, robot.lower, robot.upper, compiler)
     t0 = time.perf_counter()
-    res = jax.device_get(jax.block_until_ready(exact_matmuls(opt)(basis, bc)))
+    res = jax.device_get(jax.block_until_ready(exact_matmuls(programs.optimiser)(basis, bc)))
     wall = time.perf_counter() - t0
     finite = np.asarray(res.finite)
     c_opt = np.asarray(res.cost, np.float64)[finite]
@@ -285,10 +309,9 @@ def run(model, cfg, run_dir: str, throws: int, seed: int, n_optimise: int) -> di
         "databases": {},
     }
     t0 = time.perf_counter()
+    programs = make_programs(model, catch, cfg.compiler)
     for name, db in dbs.items():
-        result["databases"][name] = evaluate_database(
-            model, db, p0, v0, catch, sim, cfg.compiler, n_optimise
-        )
+        result["databases"][name] = evaluate_database(model, db, p0, v0, programs, sim, n_optimise)
         print(name, result["databases"][name]["success_rate"], flush=True)
     result["wall_s"] = time.perf_counter() - t0
     result["load_average_end"] = [round(x, 2) for x in _loadavg()]
