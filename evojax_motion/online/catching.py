@@ -350,6 +350,7 @@ def catch_query(
     motions = functools.partial(_catch_motions, dyn, grid, lower, upper, settings, catch, db, palm)
     options = chosen[0].feasible.reshape(b, k)
 
+    @jax.jit  # traced once: for the loop's state (`eval_shape`) and in the loop's body
     def option(i):  # the motions of every ball's option i
         plan, reach, nb = jax.tree_util.tree_map(lambda a: a[jnp.arange(b) * k + i], chosen)
         return motions(plan, reach, nb, q_start)
@@ -371,9 +372,10 @@ def catch_query(
 
     # One option after the other (one compiled motion generation): most balls' best option is
     # usable and costs one; the others only while a ball has no usable motion yet.
-    shapes = jax.eval_shape(option, 0)
+    first = jnp.asarray(0)
+    shapes = jax.eval_shape(option, first)
     empty = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-    return jax.lax.while_loop(more, next_option, (jnp.asarray(0), empty))[1]
+    return jax.lax.while_loop(more, next_option, (first, empty))[1]
 
 
 def _catch_motions(
