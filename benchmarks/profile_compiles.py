@@ -28,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dynamics_throughput import machine_info  # noqa: E402
+from result_files import shown_path  # noqa: E402
 
 _LINE = re.compile(r"Finished (.*?) (?:of|for) (\S+) in ([0-9.e-]+) sec")
 
@@ -83,7 +84,7 @@ def main(argv=None) -> None:
     ]
     result = {
         "machine": machine_info(),
-        "config": args.config,
+        "config": shown_path(args.config),
         "compiled_programs": dict(counts),
         "compile_seconds": {
             ph: round(

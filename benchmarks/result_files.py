@@ -30,3 +30,11 @@ def phases_text(phases: dict[str, float]) -> str:
 def latency_ms(pct: dict | None) -> str:
     """``{"p50": s, "p99": s}`` -> ``"p50 / p99"`` in ms (``-`` where absent)."""
     return "-" if pct is None else f"{1e3 * pct['p50']:.1f} / {1e3 * pct['p99']:.1f}"
+
+
+def shown_path(path: str) -> str:
+    """``path`` relative to the repository where it lies inside it (no machine's folders in a
+    result file), else as given."""
+    root = Path(__file__).resolve().parents[1]
+    full = Path(path).resolve()
+    return str(full.relative_to(root)) if full.is_relative_to(root) else path

@@ -50,6 +50,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from result_files import shown_path  # noqa: E402
+
 GIB = 2**30
 
 
@@ -261,13 +263,6 @@ def _cell(x: float | None, spec: str) -> str:
 
 # The databases a point is compared with in the table, the first it has: (key, shown as).
 REFERENCES = (("vs_one_device", "sharded, 1 device"), ("vs_unsharded", "unsharded"))
-
-
-def shown_path(path: str) -> str:
-    """``path`` relative to the repository where it lies inside it (no machine's folders in a
-    result file), else as given."""
-    full = Path(path).resolve()
-    return str(full.relative_to(ROOT)) if full.is_relative_to(ROOT) else path
 
 
 def markdown(result: dict) -> str:
