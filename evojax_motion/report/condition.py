@@ -4,13 +4,17 @@ catch point, boundary conditions) and its motions by interpolation (eq. 1-2), by
 
 from __future__ import annotations
 
-import functools
-from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from evojax_motion.compile_options import one_shot_jit
+from evojax_motion.compiler.basis import pca_basis, select_neighbours
+from evojax_motion.compiler.interpolation import compile_interpolation
 from evojax_motion.errors import UserError
+from evojax_motion.linalg.precision import exact_matmuls
+from evojax_motion.motion.objective import trajectory_measures
+from evojax_motion.motion.timegrid import make_time_grid
 from evojax_motion.report.run_folder import RunData
 from evojax_motion.settings.online import BALL_RADIUS
 
@@ -126,36 +130,27 @@ def condition_context(
     )
 
 
-@functools.cache
-def _programs() -> SimpleNamespace:
-    """The report's small computations as jitted programs (`compile_options.one_shot_jit`),
-    made at first use: run op by op, each of their hundreds of operations would be dispatched
-    (and compiled) on its own, seconds per call."""
-    from evojax_motion.compile_options import one_shot_jit
-    from evojax_motion.compiler.basis import pca_basis, select_neighbours
-    from evojax_motion.compiler.interpolation import compile_interpolation
-    from evojax_motion.linalg.precision import exact_matmuls
-    from evojax_motion.motion.objective import trajectory_measures
-    from evojax_motion.motion.timegrid import make_time_grid
-
-    def basis(condition, valid, q, duration, target, settings, n_components: int):
-        nb = select_neighbours(
-            condition, valid, target[None], settings.neighbours, settings.radius, settings.w_pos
-        )
-        return nb, pca_basis(q, duration, nb, n_components)
-
-    def interpolation(basis, boundary, samples: int, n_components: int):
-        grid = make_time_grid(samples)
-        return compile_interpolation(basis, boundary, grid, n_components=n_components).q
-
-    def measures(dyn, samples: int, q, duration):
-        return trajectory_measures(dyn, make_time_grid(samples), q, duration)[:2]
-
-    return SimpleNamespace(
-        basis=one_shot_jit(exact_matmuls(basis), static_argnums=(5, 6)),
-        interpolation=one_shot_jit(exact_matmuls(interpolation), static_argnums=(2, 3)),
-        measures=one_shot_jit(exact_matmuls(measures), static_argnums=(0, 1)),
+def _basis(condition, valid, q, duration, target, settings, n_components: int):
+    nb = select_neighbours(
+        condition, valid, target[None], settings.neighbours, settings.radius, settings.w_pos
     )
+    return nb, pca_basis(q, duration, nb, n_components)
+
+
+def _interpolation(basis, boundary, samples: int, n_components: int):
+    grid = make_time_grid(samples)
+    return compile_interpolation(basis, boundary, grid, n_components=n_components).q
+
+
+def _measures(dyn, samples: int, q, duration):
+    return trajectory_measures(dyn, make_time_grid(samples), q, duration)[:2]
+
+
+# The report's small computations as jitted programs: run op by op, each of their hundreds of
+# operations would be dispatched (and compiled) on its own, seconds per call.
+_basis_program = one_shot_jit(exact_matmuls(_basis), static_argnums=(5, 6))
+_interpolation_program = one_shot_jit(exact_matmuls(_interpolation), static_argnums=(2, 3))
+_measures_program = one_shot_jit(exact_matmuls(_measures), static_argnums=(0, 1))
 
 
 def neighbour_basis(db, target, basis_settings, n_components: int, exclude=None):
@@ -163,7 +158,7 @@ def neighbour_basis(db, target, basis_settings, n_components: int, exclude=None)
     valid = np.asarray(db.valid).copy()
     if exclude is not None:
         valid[exclude] = False
-    return _programs().basis()(
+    return _basis_program()(
         np.asarray(db.condition, np.float32),
         valid,
         np.asarray(db.q, np.float32),
@@ -178,14 +173,14 @@ def interpolate(db, ctx: Context, basis_settings, exclude=None) -> np.ndarray:
     """Eq. 1-2 trajectory ``(T, J)`` of the condition on ``db``."""
     _, basis = neighbour_basis(db, ctx.target, basis_settings, INTERP_COMPONENTS, exclude)
     samples = ctx.grid.s.shape[0]
-    q = _programs().interpolation()(basis, ctx.boundary, samples, INTERP_COMPONENTS)
+    q = _interpolation_program()(basis, ctx.boundary, samples, INTERP_COMPONENTS)
     return np.asarray(q[0])
 
 
 def motion_cost(ctx: Context, q) -> tuple[float, float]:
     """Eq. 5 cost and torque sum [N m] of ``q (T, J)``."""
     q = np.asarray(q, np.float32)
-    cost, tsum = _programs().measures()(ctx.dyn, q.shape[0], q, np.float32(ctx.duration))
+    cost, tsum = _measures_program()(ctx.dyn, q.shape[0], q, np.float32(ctx.duration))
     return float(cost), float(tsum)
 
 

@@ -24,12 +24,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from evojax_motion.run.atomic import atomic_write_bytes, atomic_write_text
-
 __all__ = [
     "Restored",
-    "atomic_write_bytes",  # `run.atomic`'s, for the checkpointing code (which imports orbax)
-    "atomic_write_text",
     "open_manager",
     "restore_latest",
     "restore_step",

@@ -44,6 +44,7 @@ from evojax_motion.console import log
 from evojax_motion.errors import UserError
 from evojax_motion.evolution.stats import GenerationStats
 from evojax_motion.run import compilation
+from evojax_motion.run.atomic import atomic_write_text
 
 if TYPE_CHECKING:
     from evojax_motion.settings import Config
@@ -443,8 +444,8 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         for leftover in _temporaries(out):  # of a run killed in the middle of a write
             leftover.unlink(missing_ok=True)
-        ck.atomic_write_text(out / CONFIG_FILE, config_to_yaml(cfg))
-        ck.atomic_write_text(out / ROBOT_FILE, robot.mjcf)
+        atomic_write_text(out / CONFIG_FILE, config_to_yaml(cfg))
+        atomic_write_text(out / ROBOT_FILE, robot.mjcf)
     # Checkpoints: every process calls orbax alike (it synchronises them; process 0 writes).
     if manager is None:
         manager = ck.open_manager(out / CHECKPOINT_DIR, tr.max_to_keep)
@@ -453,7 +454,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
             save_database(out / DB_INITIAL, db, meta)
         ck.save_checkpoint(manager, 0, _state_tree(db, conditions, 0), _meta([], baseline))
     if primary:
-        ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
+        atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
 
     t0 = time.perf_counter()
     if start < evo.generations:  # ahead of time, so that "seconds" per generation is execution
@@ -508,7 +509,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
                 tree, meta_g = _state_tree(db, conditions, g), _meta(metrics, baseline)
                 ck.save_checkpoint(manager, g, tree, meta_g)
             if primary:
-                ck.atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
+                atomic_write_text(out / METRICS_FILE, _metrics_text(metrics))
             bar.update(1)
             bar.set_postfix(
                 cost=_fmt(row["db_cost_mean"]),
@@ -531,7 +532,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     summary["resumed_from"] = None if restored is None else int(restored.step)
     if primary:
         text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
-        ck.atomic_write_text(out / SUMMARY_FILE, text)
+        atomic_write_text(out / SUMMARY_FILE, text)
     print_summary(summary)
     return summary
 

@@ -133,8 +133,10 @@ def test_checksum_detects_changed_data(manager):
 
 
 def test_atomic_write_leaves_no_temporary(tmp_path):
-    path = ck.atomic_write_text(tmp_path / "a.txt", "one")
-    ck.atomic_write_text(path, "two")
+    from evojax_motion.run.atomic import atomic_write_text
+
+    path = atomic_write_text(tmp_path / "a.txt", "one")
+    atomic_write_text(path, "two")
     assert path.read_text() == "two"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
 
