@@ -11,6 +11,8 @@ from evojax_motion.compile_options import ONE_SHOT, one_shot, one_shot_jit
 # Level 0 against the full level on one program: LLVM may contract or reorder float operations
 # differently; the results agree to float32 rounding.
 TOL_REL = 1e-6
+# XLA's default backend optimisation level, named: the test run compiles at level 0 (conftest).
+FULL_LEVEL = {"xla_backend_optimization_level": 3}
 
 
 def _program(x):
@@ -28,7 +30,7 @@ def test_one_shot_applies_on_the_cpu_backend_only(monkeypatch):
 
 def test_a_one_shot_program_compiles_and_agrees_with_the_full_level():
     x = np.linspace(0.0, 3.0, 1001, dtype=np.float32)
-    full = float(jax.jit(_program)(x))
+    full = float(jax.jit(_program, compiler_options=FULL_LEVEL)(x))
     factory = one_shot_jit(_program)
     assert factory() is factory()  # made once
     assert factory().lower(x).compile() is not None

@@ -282,6 +282,7 @@ def test_initial_state_reuses_its_traced_programs_and_matches_expected_inputs(
 STAGED_COST_RTOL = 1e-5
 
 
+@pytest.mark.shipped_level
 def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypatch):
     """`run.compilation.compile_generation_step` on one device: its two stages compiled side by
     side give the one-program step's generations (database and statistics, 2 generations), its cost

@@ -53,6 +53,7 @@ ASSEMBLIES = {
 }
 
 
+@pytest.mark.shipped_level
 @pytest.mark.parametrize("name", list(ASSEMBLIES))
 def test_trust_region_finds_the_rosenbrock_minimum(name, x64):
     """Each assembly of the trust-region solver reaches the minimiser (1, 1, 1) from every start
