@@ -34,6 +34,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import minimize
 
+from evojax_motion.compile_options import FULL_LEVEL
 from evojax_motion.compiler.basis import Basis
 from evojax_motion.compiler.interpolation import Boundary
 from evojax_motion.compiler.problems import reduced_problems
@@ -185,7 +186,12 @@ class ReferenceSolver:
         with jax.enable_x64(True), _on_cpu():
             dyn = _dynamics_f64(robot)
             objective = make_objective(dyn, self.lo, self.hi, 0.0)
-            self.value_and_grad = jax.jit(jax.value_and_grad(lambda z, prob: objective(z, prob)[1]))
+            # Called once per SLSQP evaluation, thousands of times a batch: at XLA's full level
+            # even where XLA_FLAGS lowers it (the test run: 100 paper problems 7 -> 17 s at 0).
+            self.value_and_grad = jax.jit(
+                jax.value_and_grad(lambda z, prob: objective(z, prob)[1]),
+                compiler_options=FULL_LEVEL,
+            )
         self.cost = TorqueCostF64(robot, grid)
         self.mj_cost = MujocoCost(robot, grid) if gradient == "mujoco-fd" else None
 

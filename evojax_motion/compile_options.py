@@ -21,6 +21,9 @@ from collections.abc import Callable
 import jax
 
 ONE_SHOT: dict = {"xla_backend_optimization_level": 0}
+# XLA's default level, named: for a program that runs many times in a process and must keep the
+# full level where XLA_FLAGS lowers it for everything else (the test run compiles at level 0).
+FULL_LEVEL: dict = {"xla_backend_optimization_level": 3}
 
 
 def one_shot(options: dict | None = None, enabled: bool = True) -> dict | None:

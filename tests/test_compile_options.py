@@ -6,13 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import ONE_SHOT, one_shot, one_shot_jit
+from evojax_motion.compile_options import FULL_LEVEL, ONE_SHOT, one_shot, one_shot_jit
 
 # Level 0 against the full level on one program: LLVM may contract or reorder float operations
 # differently; the results agree to float32 rounding.
 TOL_REL = 1e-6
-# XLA's default backend optimisation level, named: the test run compiles at level 0 (conftest).
-FULL_LEVEL = {"xla_backend_optimization_level": 3}
 
 
 def _program(x):
