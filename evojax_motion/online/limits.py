@@ -110,12 +110,15 @@ def enforce_limits(
     lower,
     upper,
     settings: OnlineSettings,
+    correct: bool = True,
 ):
     """Step 4: ``q (C, T, J)`` moved inside ``[lower, upper] (J,)`` keeping the BCs (see module).
 
     ``basis`` must hold ``settings.limit_components`` components. Returns ``(q (C, T, J),
     limit_excess (C,), fallback (C,))``: the largest violation of the input and whether the
-    minimum-jerk blend was needed.
+    minimum-jerk blend was needed. ``correct`` False (static): the projection is not traced and
+    ``q`` comes back as given (a program for motions already inside: ``limit_excess`` > 0 says
+    that one was not).
     """
     excess = jnp.max(jnp.maximum(q - upper, lower - q), axis=(1, 2))
     outside = jnp.any((q > upper) | (q < lower), axis=1, keepdims=True)  # (C, 1, J)
@@ -138,10 +141,11 @@ def enforce_limits(
         q, lam = jax.vmap(_blend_inside, in_axes=(0, 0, None, None))(q, safe, lower, upper)
         return q, jnp.any(lam > 0, axis=1)
 
+    def keep(q):
+        return q, jnp.zeros(q.shape[0], bool)
+
     # Most motions are inside already: skip the work (a select, not a branch, under vmap).
-    q, fallback = jax.lax.cond(
-        jnp.any(outside), project, lambda q: (q, jnp.zeros(q.shape[0], bool)), q
-    )
+    q, fallback = jax.lax.cond(jnp.any(outside), project, keep, q) if correct else keep(q)
     return q, jnp.maximum(excess, 0.0), fallback
 
 

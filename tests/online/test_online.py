@@ -123,6 +123,55 @@ def test_cpu_fast_path_matches_the_default_program(env, near):
     np.testing.assert_allclose(got.cost, ref.cost, rtol=TOL_FAST_COST)
 
 
+def test_one_shot_generator_runs_the_whole_query_only_for_targets_that_need_a_correction(
+    env, near, monkeypatch
+):
+    """The command line's generator (``one_shot``) runs the query without its two corrections
+    (joint-limit projection, time scaling) first. Where no target needs one it returns those
+    motions, the whole query's (to float32 fusion), without tracing the whole query; where one
+    does (a 1 ms motion, stretched) it returns the whole query's. The flag it decides on is set
+    where eq. 1 leaves the joint limits (narrowed so that every motion does)."""
+    from evojax_motion.linalg.precision import exact_matmuls
+    from evojax_motion.online import generation
+    from evojax_motion.online.limits import joint_limits_f32
+
+    traced = []  # traces of the whole query
+    query = generation.online_query
+
+    def spy(*a, corrections=True):
+        traced.extend([1] if corrections else [])
+        return query(*a, corrections=corrections)
+
+    monkeypatch.setattr(generation, "online_query", spy)
+    gen = make_online_generator(env.robot, env.dyn, env.grid, BASIS, SETTINGS, one_shot=True)
+    targets, ref = near
+    c = targets.shape[0]
+    rest = np.tile(np.asarray(env.robot.rest, np.float32), (c, 1))
+    for duration in (np.nan, 0.001):
+        args = (env.db_device, targets, np.full(c, duration, np.float32), rest)
+        got = to_numpy(gen(*args))
+        assert len(traced) == (0 if np.isnan(duration) else 1)
+        ref = to_numpy(env.generate(*args))
+        assert np.isnan(duration) or (ref.duration > 0.1).all()  # stretched
+        np.testing.assert_array_equal(got.corrected, ~np.isnan(duration))
+        np.testing.assert_array_equal(got.ok, ref.ok)
+        np.testing.assert_allclose(got.duration, ref.duration, rtol=TOL_FAST_COST)
+        np.testing.assert_allclose(got.q, ref.q, atol=TOL_FAST_Q)
+        np.testing.assert_allclose(got.cost, ref.cost, rtol=TOL_FAST_COST)
+
+    def uncorrected(lo, hi, *a):
+        return query(env.dyn, env.grid, lo, hi, BASIS, SETTINGS, *a, corrections=False)
+
+    lower, upper = joint_limits_f32(env.robot)
+    mid = 0.5 * (lower + upper)
+    run = jax.jit(exact_matmuls(uncorrected))
+    args = (env.db_device, targets, np.full(c, np.nan, np.float32), rest)
+    for shrink in (1.0, 0.6):
+        res = to_numpy(run(mid + shrink * (lower - mid), mid + shrink * (upper - mid), *args))
+        np.testing.assert_array_equal(res.corrected, res.limit_excess > 0)
+        assert res.corrected.all() == (shrink < 1.0)
+
+
 def test_query_reaches_target_within_limits_and_bcs(env, near):
     targets, r = near
     assert r.ok.all() and r.reachable.all()
