@@ -38,9 +38,10 @@ lint: $(VENV)/.installed-dev
 # --dist loadscope: a module's tests share one worker, so its module-scoped fixtures (compiled
 # steps, training runs) are built once, not once per worker; tests/conftest.py makes modules that
 # build the same programs one unit and orders the units heaviest first (--no-loadscope-reorder:
-# in that order, not by their numbers of tests). The tests marked isa_sensitive run once more with
-# XLA:CPU's instruction set capped (AVX2 on AVX-512 CPUs, else SSE4.2; EVOJAX_TEST_ISAS=SSE4_2,AVX2
-# for both), in a pytest subprocess of tests/test_isa_variants.py; a failure there fails this target.
+# in that order, not by their numbers of tests). The suite compiles at XLA's optimisation level 0;
+# the tests marked isa_sensitive or shipped_level run (again) at the default level with XLA:CPU's
+# instruction set capped (AVX2 on AVX-512 CPUs, else SSE4.2; EVOJAX_TEST_ISAS=SSE4_2,AVX2 for both)
+# in a pytest subprocess of tests/test_isa_variants.py; a failure there fails this target.
 test: lint
 	$(VENV)/bin/pytest -q -n 2 --dist loadscope --no-loadscope-reorder --durations=15
 

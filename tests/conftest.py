@@ -47,7 +47,7 @@ if _SET_FLAG:
 # The tests' programs also compile at XLA's backend (LLVM) optimisation level 0, as the one-shot
 # programs of `compile_options.ONE_SHOT` do: the same HLO, other machine code, results that
 # differ by rounding. `make test` on 2 CPU cores: 412 s against 559-571 s at the default level.
-# Two kinds of tests need the level that ships, and run at it in the subprocesses of
+# Two kinds of tests need the level that ships, and run at it in the subprocess of
 # tests/test_isa_variants.py (with the instruction set capped): those marked `shipped_level`
 # (two programs must give bit-identical results, which at level 0 they do not) and those marked
 # `isa_sensitive` (their tolerances were measured at that level; the level-0 run is one more

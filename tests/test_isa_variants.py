@@ -42,7 +42,7 @@ _PARENT_ONLY = (
     "EVOJAX_TEST_XLA_CACHE", "JAX_COMPILATION_CACHE_DIR", "EVOJAX_MOTION_JAX_CACHE",
     "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "PYTEST_XDIST_WORKER",
     "PYTEST_XDIST_WORKER_COUNT", "PYTEST_XDIST_TESTRUNUID", "PYTEST_CURRENT_TEST",
-    "PYTEST_ADDOPTS", "EVOJAX_TEST_SHIPPED_LEVEL",
+    "PYTEST_ADDOPTS", SHIPPED_LEVEL_ENV,
 )  # fmt: skip
 
 
@@ -89,15 +89,9 @@ def capped_env(isa: str) -> dict[str, str]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("isa", ISAS)
-def test_rounding_sensitive_tests_pass_with_capped_isa(isa):
+def test_marked_tests_pass_at_the_shipped_level_with_a_capped_isa(isa):
     if platform.machine().lower() not in ("x86_64", "amd64"):
         pytest.skip(f"--xla_cpu_max_isa caps x86-64 instruction sets; this is {platform.machine()}")
-    flags = cpu_flags()
-    if isa == "AVX2" and flags is not None and "avx512f" not in flags:
-        # XLA's default on a CPU without AVX-512 is at most AVX2: the ordinary run of the suite
-        # is that run (measured on an AVX2 CPU: every result of the paper-problem test
-        # bit-identical with and without the cap)
-        pytest.skip("this CPU has no AVX-512: the default run is the AVX2 run")
     modules = marked_modules()
     assert modules, f"no test is marked {' or '.join(MARKERS)}: the markers or this scan are broken"
     cmd = [sys.executable, "-m", "pytest", "-q", "--tb=short", "-p", "no:xdist",
