@@ -119,6 +119,21 @@ def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
     return dyn, None
 
 
+def one_shot_layout(dyn: Dynamics) -> Dynamics:
+    """The dynamics for a program that runs once or twice (the command line's ``generate`` and
+    ``catch``, `compile_options.ONE_SHOT`), where its compile is most of the wait.
+
+    On accelerators with the RNEA backend, the vector layout: the scalar one (their default,
+    3-8x faster to run) compiles slowly. One H200, the command line cold, 3 interleaved pairs:
+    `generate` 22.8-25.5 -> 11.7-12.2 s, `catch` 26.9-31.8 -> 21.2-23.1 s (CHANGELOG.md).
+    Elsewhere ``dyn`` as given (on CPU the scalar layout unfused, `unfused_cpu_program`, also
+    compiles the query faster).
+    """
+    if jax.default_backend() == "cpu" or dyn.backend != "rnea" or dyn.form == "vector":
+        return dyn
+    return make_dynamics(dyn.robot, "rnea", dyn.dtype, "vector")
+
+
 @functools.cache
 def compiler_accepts(**options: Any) -> bool:
     """Whether the default backend's compiler accepts these jit ``compiler_options``.

@@ -48,7 +48,7 @@ from evojax_motion.compiler.interpolation import (
 )
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
-from evojax_motion.model.dynamics import Dynamics, unfused_cpu_program
+from evojax_motion.model.dynamics import Dynamics, one_shot_layout, unfused_cpu_program
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import Database
 from evojax_motion.motion.objective import cost_from_torques
@@ -329,7 +329,8 @@ def make_online_generator(
     C or database shape. ``fast_path``: compile through `model.dynamics.unfused_cpu_program` (faster
     on CPU; False: ``dyn`` as given, XLA's default options). ``one_shot``: for a query or two
     (the command line), where compiling takes longer than running: compiled faster, run slower
-    (`compile_options.ONE_SHOT`), and first without the two corrections (the joint-limit
+    (`compile_options.ONE_SHOT`; on accelerators the vector RNEA layout,
+    `model.dynamics.one_shot_layout`), and first without the two corrections (the joint-limit
     projection, the time scaling; `finish_motion`), which most motions do not need; only where
     a target needs one (``corrected``) is the whole query compiled and run (2 CPU cores, a cold
     `generate`: 3.9-4.5 s -> 2.9-3.3 s; CHANGELOG.md). ``cache_parts``: what the program
@@ -340,6 +341,7 @@ def make_online_generator(
     lower, upper = joint_limits_f32(robot)
     dyn, options = unfused_cpu_program(dyn) if fast_path else (dyn, None)
     options = one_shot_options(options, one_shot)
+    dyn = one_shot_layout(dyn) if one_shot else dyn
     fixed = (dyn, grid, lower, upper, basis_settings, settings)
     fn = functools.partial(online_query, *fixed)
     jitted = jax.jit(exact_matmuls(fn), compiler_options=options)

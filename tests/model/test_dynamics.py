@@ -316,6 +316,23 @@ def test_unfused_program_only_where_the_compiler_takes_its_options(monkeypatch):
     assert unfused_cpu_program(dyn) == (dyn, None)
 
 
+def test_one_shot_layout_is_the_vector_one_on_accelerators_only(monkeypatch):
+    """`one_shot_layout`: on accelerators an RNEA `Dynamics` of another layout becomes the
+    vector one (same robot and dtype; the layouts' torques are checked against `mj_inverse`
+    above); on CPU, for MJX, and for the vector layout itself, the same object."""
+    from evojax_motion.model import dynamics as dynamics_module
+    from evojax_motion.model.dynamics import one_shot_layout
+
+    robot = ROBOTS["mahru_arm"]()
+    scalar = make_dynamics(robot, "rnea", np.float32, "scalar")
+    mjx = make_dynamics(robot, "mjx")
+    assert jax.default_backend() != "cpu" or one_shot_layout(scalar) is scalar
+    monkeypatch.setattr(dynamics_module.jax, "default_backend", lambda: "gpu")
+    vector = one_shot_layout(scalar)
+    assert (vector.form, vector.robot, vector.dtype) == ("vector", robot, scalar.dtype)
+    assert one_shot_layout(vector) is vector and one_shot_layout(mjx) is mjx
+
+
 def test_user_errors():
     robot = ROBOTS["mahru_arm"]()
     with pytest.raises(UserError, match="dynamics: expected one of"):
