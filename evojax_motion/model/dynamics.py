@@ -140,16 +140,19 @@ def one_shot_layout(dyn: Dynamics) -> Dynamics:
 # with the vector one, which runs a generation in 0.022 s against 0.012-0.014 s; the runs took
 # 71.2-72.5 s and 28.3-30.8 s. At 60,000 (200 generations of 300) the vector layout's slower
 # generations cost ~2 s a run even with the scalar step in the cache; longer runs keep the
-# scalar layout (and the generation benchmarks measure it).
+# scalar layout (and the generation benchmarks measure it). Measured at 300 conditions only, so
+# larger batches (whose memory in the vector layout is not measured) keep the scalar one too.
 SHORT_RUN_WORK = 60_000
+SHORT_RUN_CONDITIONS = 1_000
 
 
 def training_layout(dyn: Dynamics, generations: int, conditions: int) -> Dynamics:
     """The dynamics a training run of ``generations`` x ``conditions`` compiles its programs
-    with: `one_shot_layout` (the vector RNEA layout on accelerators) up to `SHORT_RUN_WORK`,
-    where the scalar layout's compile would take longer than the generations it speeds up;
-    ``dyn`` otherwise and on CPU."""
-    return one_shot_layout(dyn) if generations * conditions <= SHORT_RUN_WORK else dyn
+    with: `one_shot_layout` (the vector RNEA layout on accelerators) up to `SHORT_RUN_WORK`
+    and `SHORT_RUN_CONDITIONS`, where the scalar layout's compile would take longer than the
+    generations it speeds up; ``dyn`` otherwise and on CPU."""
+    short = generations * conditions <= SHORT_RUN_WORK and conditions <= SHORT_RUN_CONDITIONS
+    return one_shot_layout(dyn) if short else dyn
 
 
 @functools.cache

@@ -320,9 +320,15 @@ def test_one_shot_layout_is_the_vector_one_on_accelerators_only(monkeypatch):
     """`one_shot_layout`: on accelerators an RNEA `Dynamics` of another layout becomes the
     vector one (same robot and dtype; the layouts' torques are checked against `mj_inverse`
     above); on CPU, for MJX, and for the vector layout itself, the same object. A training run
-    takes it up to `SHORT_RUN_WORK` generations x conditions (`training_layout`)."""
+    takes it up to `SHORT_RUN_WORK` generations x conditions and `SHORT_RUN_CONDITIONS` conditions
+    (`training_layout`)."""
     from evojax_motion.model import dynamics as dynamics_module
-    from evojax_motion.model.dynamics import SHORT_RUN_WORK, one_shot_layout, training_layout
+    from evojax_motion.model.dynamics import (
+        SHORT_RUN_CONDITIONS,
+        SHORT_RUN_WORK,
+        one_shot_layout,
+        training_layout,
+    )
 
     robot = ROBOTS["mahru_arm"]()
     scalar = make_dynamics(robot, "rnea", np.float32, "scalar")
@@ -332,8 +338,10 @@ def test_one_shot_layout_is_the_vector_one_on_accelerators_only(monkeypatch):
     vector = one_shot_layout(scalar)
     assert (vector.form, vector.robot, vector.dtype) == ("vector", robot, scalar.dtype)
     assert one_shot_layout(vector) is vector and one_shot_layout(mjx) is mjx
-    assert training_layout(scalar, 10, SHORT_RUN_WORK // 10).form == "vector"
-    assert training_layout(scalar, 11, SHORT_RUN_WORK // 10) is scalar
+    few = SHORT_RUN_CONDITIONS
+    assert training_layout(scalar, SHORT_RUN_WORK // few, few).form == "vector"
+    assert training_layout(scalar, SHORT_RUN_WORK // few + 1, few) is scalar
+    assert training_layout(scalar, 1, few + 1) is scalar
 
 
 def test_user_errors():
