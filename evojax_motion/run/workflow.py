@@ -127,14 +127,21 @@ def check_database_of_run(path: str | Path) -> None:
 def cache_parts(cfg: Config, robot: Robot) -> dict:
     """What a run's compiled programs depend on besides their arguments, for the traced-program
     cache (`run.cache.compile_traced`): the config sections that shape them (robot,
-    dynamics, demos, basis, compiler, evolution without ``generations``) and the digest of the
+    dynamics, demos, basis, compiler, evolution without ``generations``), whether the run is
+    short (`model.dynamics.short_run`: its RNEA layout on accelerators) and the digest of the
     robot's compiled MuJoCo model."""
+    from evojax_motion.model.dynamics import short_run
     from evojax_motion.run.cache import model_digest
 
     sections = config_to_dict(cfg)
     sections["evolution"].pop("generations")  # how often the step runs, not what it is
     names = ("robot", "dynamics", "demos", "basis", "compiler", "evolution")
-    return {"config": {k: sections[k] for k in names}, "model": model_digest(robot.mj_model)}
+    evo = cfg.evolution
+    return {
+        "config": {k: sections[k] for k in names},
+        "short_run": short_run(evo.generations, evo.conditions),
+        "model": model_digest(robot.mj_model),
+    }
 
 
 def build_demonstrations(cfg: Config) -> tuple[Database, DatabaseMeta, dict]:

@@ -329,6 +329,8 @@ def test_one_shot_layout_is_the_vector_one_on_accelerators_only(monkeypatch):
         one_shot_layout,
         training_layout,
     )
+    from evojax_motion.run.workflow import cache_parts
+    from evojax_motion.settings import load_config
 
     robot = ROBOTS["mahru_arm"]()
     scalar = make_dynamics(robot, "rnea", np.float32, "scalar")
@@ -342,6 +344,10 @@ def test_one_shot_layout_is_the_vector_one_on_accelerators_only(monkeypatch):
     assert training_layout(scalar, SHORT_RUN_WORK // few, few).form == "vector"
     assert training_layout(scalar, SHORT_RUN_WORK // few + 1, few) is scalar
     assert training_layout(scalar, 1, few + 1) is scalar
+    # a run's traced programs are kept under a key that tells the layouts apart
+    tiny = Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml"
+    cfg, longer = (load_config(tiny, s) for s in ([], [f"evolution.generations={SHORT_RUN_WORK}"]))
+    assert cache_parts(cfg, robot)["short_run"] and not cache_parts(longer, robot)["short_run"]
 
 
 def test_user_errors():
