@@ -144,7 +144,7 @@ def test_one_shot_generator_runs_the_whole_query_only_for_targets_that_need_a_co
 
     monkeypatch.setattr(generation, "online_query", spy)
     gen = make_online_generator(env.robot, env.dyn, env.grid, BASIS, SETTINGS, one_shot=True)
-    targets, ref = near
+    targets = near[0]
     c = targets.shape[0]
     rest = np.tile(np.asarray(env.robot.rest, np.float32), (c, 1))
     for duration in (np.nan, 0.001):
