@@ -146,18 +146,14 @@ SHORT_RUN_WORK = 60_000
 SHORT_RUN_CONDITIONS = 1_000
 
 
-def short_run(generations: int, conditions: int) -> bool:
-    """Whether a training run of ``generations`` x ``conditions`` is short: at most
-    `SHORT_RUN_WORK` and `SHORT_RUN_CONDITIONS` (`training_layout`)."""
-    return generations * conditions <= SHORT_RUN_WORK and conditions <= SHORT_RUN_CONDITIONS
-
-
 def training_layout(dyn: Dynamics, generations: int, conditions: int) -> Dynamics:
     """The dynamics a training run of ``generations`` x ``conditions`` compiles its programs
-    with: `one_shot_layout` (the vector RNEA layout on accelerators) for a `short_run`, where
-    the scalar layout's compile would take longer than the generations it speeds up; ``dyn``
-    otherwise and on CPU."""
-    return one_shot_layout(dyn) if short_run(generations, conditions) else dyn
+    with: `one_shot_layout` (the vector RNEA layout on accelerators) up to `SHORT_RUN_WORK`
+    and `SHORT_RUN_CONDITIONS`, where the scalar layout's compile would take longer than the
+    generations it speeds up; ``dyn`` otherwise and on CPU. The traced-program cache keys by
+    the layout itself (`run.workflow.cache_parts`)."""
+    short = generations * conditions <= SHORT_RUN_WORK and conditions <= SHORT_RUN_CONDITIONS
+    return one_shot_layout(dyn) if short else dyn
 
 
 @functools.cache

@@ -54,15 +54,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import one_shot as one_shot_options
 from evojax_motion.compiler.basis import Neighbours
 from evojax_motion.errors import UserError
 from evojax_motion.linalg.precision import exact_matmuls
-from evojax_motion.model.dynamics import Dynamics, one_shot_layout, unfused_cpu_program
+from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import Database
 from evojax_motion.motion.timegrid import TimeGrid
-from evojax_motion.online.generation import OnlineResult, finish_motion, kept_trace, problem_of
+from evojax_motion.online.generation import (
+    OnlineResult,
+    finish_motion,
+    kept_trace,
+    problem_of,
+    program_dynamics,
+)
 from evojax_motion.online.limits import joint_limits_f32
 from evojax_motion.online.palm import catch_posture, palm_normal
 from evojax_motion.online.reach import (
@@ -421,14 +426,12 @@ def make_catcher(
     """Jitted ``catcher(db, p0 (B, 3), v0 (B, 3), q_start (B, J)) -> Catch``. ``one_shot``: for
     a ball or two (the command line): compiled faster, run slower (`compile_options.ONE_SHOT`:
     on 2 CPU cores 10.3 -> 3.9 s to compile, 1.6 -> 3.4 ms a ball; on accelerators the vector
-    RNEA layout, `model.dynamics.one_shot_layout`). ``cache_parts``: as
+    RNEA layout: `online.generation.program_dynamics`). ``cache_parts``: as
     `online.generation.make_online_generator`'s (the catch settings are added here)."""
     basis_settings, settings = resolve_settings(basis_settings, settings)
     gravity = np.asarray(robot.mj_model.opt.gravity, np.float32)
     lower, upper = joint_limits_f32(robot)
-    dyn, options = unfused_cpu_program(dyn)  # as `online.generation.make_online_generator`
-    options = one_shot_options(options, one_shot)
-    dyn = one_shot_layout(dyn) if one_shot else dyn
+    dyn, options = program_dynamics(dyn, one_shot)
     catch = catch or CatchSettings()
     fn = functools.partial(
         catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch,

@@ -339,9 +339,7 @@ def make_online_generator(
     """
     basis_settings, settings = resolve_settings(basis_settings, settings)
     lower, upper = joint_limits_f32(robot)
-    dyn, options = unfused_cpu_program(dyn) if fast_path else (dyn, None)
-    options = one_shot_options(options, one_shot)
-    dyn = one_shot_layout(dyn) if one_shot else dyn
+    dyn, options = program_dynamics(dyn, one_shot, fast_path)
     fixed = (dyn, grid, lower, upper, basis_settings, settings)
     fn = functools.partial(online_query, *fixed)
     jitted = jax.jit(exact_matmuls(fn), compiler_options=options)
@@ -357,6 +355,18 @@ def make_online_generator(
         return whole(db, targets, duration, q_start) if bool(result.corrected.any()) else result
 
     return generate
+
+
+def program_dynamics(
+    dyn: Dynamics, one_shot: bool, fast_path: bool = True
+) -> tuple[Dynamics, dict | None]:
+    """``(dynamics, jit compiler_options)`` of an online program (`make_online_generator`,
+    `catching.make_catcher`): ``fast_path``, `model.dynamics.unfused_cpu_program`; ``one_shot``,
+    `compile_options.ONE_SHOT` and `model.dynamics.one_shot_layout`."""
+    dyn, options = unfused_cpu_program(dyn) if fast_path else (dyn, None)
+    if not one_shot:
+        return dyn, options
+    return one_shot_layout(dyn), one_shot_options(options)
 
 
 def kept_trace(jitted, name: str, cache_parts: Any, options: dict | None) -> Callable:

@@ -110,13 +110,13 @@ def enforce_limits(
     lower,
     upper,
     settings: OnlineSettings,
-    correct: bool = True,
+    corrections: bool = True,
 ):
     """Step 4: ``q (C, T, J)`` moved inside ``[lower, upper] (J,)`` keeping the BCs (see module).
 
     ``basis`` must hold ``settings.limit_components`` components. Returns ``(q (C, T, J),
     limit_excess (C,), fallback (C,))``: the largest violation of the input and whether the
-    minimum-jerk blend was needed. ``correct`` False (static): the projection is not traced and
+    minimum-jerk blend was needed. ``corrections`` False (static): the projection is not traced and
     ``q`` comes back as given (a program for motions already inside: ``limit_excess`` > 0 says
     that one was not).
     """
@@ -145,7 +145,7 @@ def enforce_limits(
         return q, jnp.zeros(q.shape[0], bool)
 
     # Most motions are inside already: skip the work (a select, not a branch, under vmap).
-    q, fallback = jax.lax.cond(jnp.any(outside), project, keep, q) if correct else keep(q)
+    q, fallback = jax.lax.cond(jnp.any(outside), project, keep, q) if corrections else keep(q)
     return q, jnp.maximum(excess, 0.0), fallback
 
 

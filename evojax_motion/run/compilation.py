@@ -54,7 +54,7 @@ def setup_programs(cfg: Config, robot, dyn, sizes: tuple[int, ...]) -> SetupProg
     from evojax_motion.run.workflow import cache_parts
 
     n, t, j = (int(x) for x in sizes)
-    parts = cache_parts(cfg, robot)
+    parts = cache_parts(cfg, robot, dyn)
     grid = make_time_grid(t)
     costs = CostProgram(dyn, grid, max(n, cfg.evolution.conditions), parts)
     draw = condition_programs(dyn, robot, cfg.evolution, cfg.basis, grid, parts)
@@ -139,7 +139,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
         step_fn, _ = sharded_generation_step(*fixed, devices=cfg.parallel.devices, **limits)
         return step_fn.lower(db, conditions, generation).compile()
     prepare, finish, options = one_device_stages(*fixed, devices=cfg.parallel.devices, **limits)
-    parts = {"n_human": n_human, **cache_parts(cfg, robot)}
+    parts = {"n_human": n_human, **cache_parts(cfg, robot, dyn)}
     lowered = lower_traced(prepare, (db, conditions), {"program": "prepare", **parts}, options)
     first = Background(lowered.compile)
     try:

@@ -239,7 +239,9 @@ def initial_state(
             on_traced()
 
     synthesis_costs = None if setup is None else setup.costs  # rows >= demos.count
-    humans, meta = demonstrations(cfg, robot, dyn, cache_parts(cfg, robot), traced, synthesis_costs)
+    humans, meta = demonstrations(
+        cfg, robot, dyn, cache_parts(cfg, robot, dyn), traced, synthesis_costs
+    )
     check_samples(cfg, humans.q.shape[1])
     traced()
     if setup is None or humans.q.shape != setup.sizes:
@@ -411,7 +413,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     # where the demonstrations are synthesised, once their synthesis is traced. (Nothing for a
     # demonstrations file that `initial_state` will refuse: `run.compilation.expected_sizes`.)
     early = None if resuming or not primary else compilation.EarlyCompile(cfg, robot, dyn)
-    if early is not None and not synthesises(cfg, robot):
+    if early is not None and not synthesises(cfg, robot, dyn):
         early.start()
     try:
         from tqdm.auto import tqdm

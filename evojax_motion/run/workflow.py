@@ -124,22 +124,20 @@ def check_database_of_run(path: str | Path) -> None:
     )
 
 
-def cache_parts(cfg: Config, robot: Robot) -> dict:
+def cache_parts(cfg: Config, robot: Robot, dyn: Dynamics) -> dict:
     """What a run's compiled programs depend on besides their arguments, for the traced-program
     cache (`run.cache.compile_traced`): the config sections that shape them (robot,
-    dynamics, demos, basis, compiler, evolution without ``generations``), whether the run is
-    short (`model.dynamics.short_run`: its RNEA layout on accelerators) and the digest of the
-    robot's compiled MuJoCo model."""
-    from evojax_motion.model.dynamics import short_run
+    dynamics, demos, basis, compiler, evolution without ``generations``), the RNEA layout
+    ``dyn`` traces (`model.dynamics.training_layout` picks it) and the digest of the robot's
+    compiled MuJoCo model."""
     from evojax_motion.run.cache import model_digest
 
     sections = config_to_dict(cfg)
     sections["evolution"].pop("generations")  # how often the step runs, not what it is
     names = ("robot", "dynamics", "demos", "basis", "compiler", "evolution")
-    evo = cfg.evolution
     return {
         "config": {k: sections[k] for k in names},
-        "short_run": short_run(evo.generations, evo.conditions),
+        "layout": dyn.form,
         "model": model_digest(robot.mj_model),
     }
 
@@ -166,14 +164,14 @@ def kept_demonstrations(cache: Any):
     return None if cache is None else result_path({"result": "demonstrations", "parts": cache})
 
 
-def synthesises(cfg: Config, robot: Robot) -> bool:
+def synthesises(cfg: Config, robot: Robot, dyn: Dynamics) -> bool:
     """Whether `demonstrations` will synthesise (no ``demos_file``, none shipped or kept for
-    ``cfg``)."""
+    ``cfg`` and ``dyn``)."""
     from evojax_motion.demonstrations.shipped import shipped_path
 
     if cfg.demos_file is not None or shipped_path(cfg, robot).is_file():
         return False
-    path = kept_demonstrations(cache_parts(cfg, robot))
+    path = kept_demonstrations(cache_parts(cfg, robot, dyn))
     return path is None or not path.is_file()
 
 

@@ -369,7 +369,7 @@ def test_a_run_keeps_its_synthesised_demonstrations(tmp_path, monkeypatch, capsy
         Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml", overrides=["demos.seed=1"]
     )
     robot, dyn = workflow.make_robot_dynamics(cfg)
-    parts = workflow.cache_parts(cfg, robot)
+    parts = workflow.cache_parts(cfg, robot, dyn)
     kept = compile_cache.result_path({"result": "demonstrations", "parts": parts})
     assert kept is not None and kept.parent.name == compile_cache.RESULTS_DIR  # conftest's cache
     path = tmp_path / "results" / "demos.npz"

@@ -347,7 +347,10 @@ def test_one_shot_layout_is_the_vector_one_on_accelerators_only(monkeypatch):
     # a run's traced programs are kept under a key that tells the layouts apart
     tiny = Path(__file__).resolve().parents[2] / "configs" / "tiny.yaml"
     cfg, longer = (load_config(tiny, s) for s in ([], [f"evolution.generations={SHORT_RUN_WORK}"]))
-    assert cache_parts(cfg, robot)["short_run"] and not cache_parts(longer, robot)["short_run"]
+    layouts = (training_layout(scalar, c.evolution.generations, c.evolution.conditions)
+               for c in (cfg, longer))  # fmt: skip
+    short_key, long_key = (cache_parts(c, robot, d) for c, d in zip((cfg, longer), layouts))
+    assert short_key != long_key
 
 
 def test_user_errors():
