@@ -1,6 +1,8 @@
 """Where a fresh process's compile time goes before the first generation: every program JAX
 traces and compiles while `run.training.initial_state` builds generation 0 (demonstrations, then the
-condition set and costs), and the generation step, grouped by phase and program name.
+condition set and costs), and the generation step, grouped by phase and program name, with the
+dynamics `train` compiles them with (`model.dynamics.training_layout`). Also each phase's wall
+time, one after the other here (`train` overlaps the step's compile with the setup).
 
 Reads JAX's own log lines (``jax_log_compiles``: "Finished tracing ... / XLA compilation of
 NAME in S sec"). Run it in a fresh process with no compilation cache to see cold compiles.
@@ -18,6 +20,7 @@ import json
 import logging
 import re
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -58,12 +61,14 @@ def main(argv=None) -> None:
     jax.config.update("jax_log_compiles", True)
 
     import evojax_motion.run.workflow as workflow
+    from evojax_motion.model.dynamics import training_layout
     from evojax_motion.run import compilation
     from evojax_motion.run import training as train
     from evojax_motion.settings import load_config
 
     cfg = load_config(args.config)
     robot, dyn = workflow.make_robot_dynamics(cfg)
+    dyn = training_layout(dyn, cfg.evolution.generations, cfg.evolution.conditions)  # as `train`
     demos = workflow.demonstrations  # what `run.training.initial_state` calls
 
     def timed_demos(*a, **k):  # the phases: demonstrations, then everything else of the setup
@@ -73,11 +78,11 @@ def main(argv=None) -> None:
         return out
 
     workflow.demonstrations = timed_demos
-    db, conditions, *_ = train.initial_state(cfg, robot, dyn)
+    db, conditions, *_, walls = train.initial_state(cfg, robot, dyn)
     phase[0] = "generation step"
-    compile_step = getattr(compilation, "compile_generation_step", None)
-    if compile_step is not None:
-        compile_step(cfg, robot, dyn, db, conditions)
+    t0 = time.perf_counter()
+    compilation.compile_generation_step(cfg, robot, dyn, db, conditions)
+    walls = {**walls, "step_seconds": time.perf_counter() - t0}
     rows = [
         {"phase": k[0], "program": k[1], "stage": k[2], "seconds": round(v, 3)}
         for k, v in sorted(seconds.items(), key=lambda kv: -kv[1])
@@ -92,13 +97,15 @@ def main(argv=None) -> None:
             )
             for ph in counts
         },
+        "wall_seconds": {k: round(v, 2) for k, v in walls.items()},
         "entries": rows,
     }
     tag = args.tag or result["machine"]["platform"]
     out = Path(args.out_dir) / f"profile_compiles_{tag}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({k: result[k] for k in ("compiled_programs", "compile_seconds")}))
+    shown = ("compiled_programs", "compile_seconds", "wall_seconds")
+    print(json.dumps({k: result[k] for k in shown}))
     for r in rows[:12]:
         print(r)
     print(f"written: {out}")

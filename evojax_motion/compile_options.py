@@ -9,8 +9,15 @@ optimisation level to 0 for them on the CPU backend. Measured on 2 CPU cores
 every program (``XLA_FLAGS``), a cold paper-configuration ``train``'s conditions phase 8.1 -> 1.5
 s (one run each, on a machine shared with other work). The generation step and the
 programs that answer many queries (benchmarks, an online generator kept in a notebook) keep the
-full level: at level 0 a generation on the CPU took 3.3x as long. GPUs keep the full level: on
-one H200 the setting did not shorten the compile that dominates there (the generation step's).
+full level: at level 0 a generation on the CPU took 3.3x as long.
+
+On GPUs XLA's backend level did not shorten the compiles that dominate there (one H200). What
+does is autotuning: XLA times candidate kernels of every matrix product while it compiles.
+`ONE_SHOT_GPU` turns it off for the same one-shot programs, and `short_run` for a short
+training run's generation step (`model.dynamics.is_short_run`), which runs a few tens of times.
+Measured on one H200 (CHANGELOG.md): the human costs' program compiled in 9.8 -> 1.5 s, a short
+run's two step programs in 11.6 / 15.5 -> 6.9 / 9.9 s, for 0.67 -> 0.75 ms and 20.6 -> 23.3 ms a
+call. Long runs and the generation benchmarks keep autotuning.
 """
 
 from __future__ import annotations
@@ -20,7 +27,8 @@ from collections.abc import Callable
 
 import jax
 
-ONE_SHOT: dict = {"xla_backend_optimization_level": 0}
+ONE_SHOT: dict = {"xla_backend_optimization_level": 0}  # CPU
+ONE_SHOT_GPU: dict = {"xla_gpu_autotune_level": 0}  # GPUs: no kernel autotuning
 # XLA's default level, named: for a program that runs many times in a process and must keep the
 # full level where XLA_FLAGS lowers it for everything else (the test run compiles at level 0).
 FULL_LEVEL: dict = {"xla_backend_optimization_level": 3}
@@ -28,11 +36,24 @@ FULL_LEVEL: dict = {"xla_backend_optimization_level": 3}
 
 def one_shot(options: dict | None = None, enabled: bool = True) -> dict | None:
     """jit ``compiler_options`` for a program that runs once: ``options`` (None: none) with
-    `ONE_SHOT`'s where ``enabled`` and the default backend is the CPU, else ``options``.
-    Reads the backend: call it when the program is made, not at import."""
-    if not enabled or jax.default_backend() != "cpu":
+    `ONE_SHOT`'s where ``enabled`` and the default backend is the CPU, `ONE_SHOT_GPU`'s where
+    it is a GPU, else ``options``. Reads the backend: call it when the program is made, not at
+    import."""
+    if not enabled:
         return options
-    return {**(options or {}), **ONE_SHOT}
+    backend = jax.default_backend()
+    if backend == "cpu":
+        return {**(options or {}), **ONE_SHOT}
+    return short_run(options) if backend == "gpu" else options
+
+
+def short_run(options: dict | None = None, enabled: bool = True) -> dict | None:
+    """jit ``compiler_options`` for a program that runs a few tens of times (a short training
+    run's generation step): ``options`` with `ONE_SHOT_GPU`'s where ``enabled`` and the default
+    backend is a GPU, else ``options`` (on the CPU such a program keeps the full level)."""
+    if not enabled or jax.default_backend() != "gpu":
+        return options
+    return {**(options or {}), **ONE_SHOT_GPU}
 
 
 def one_shot_jit(fn: Callable, **jit_kwargs) -> Callable[[], Callable]:

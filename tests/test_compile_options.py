@@ -6,7 +6,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from evojax_motion.compile_options import FULL_LEVEL, ONE_SHOT, one_shot, one_shot_jit
+from evojax_motion.compile_options import (
+    FULL_LEVEL,
+    ONE_SHOT,
+    ONE_SHOT_GPU,
+    one_shot,
+    one_shot_jit,
+    short_run,
+)
 
 # Level 0 against the full level on one program: LLVM may contract or reorder float operations
 # differently; the results agree to float32 rounding.
@@ -17,13 +24,18 @@ def _program(x):
     return jnp.sum(jnp.sin(x) * jnp.exp(-x) + x**2)
 
 
-def test_one_shot_applies_on_the_cpu_backend_only(monkeypatch):
+def test_one_shot_options_follow_the_backend(monkeypatch):
     base = {"xla_cpu_use_fusion_emitters": False}
     assert one_shot(base, enabled=False) is base
+    assert short_run(base, enabled=False) is base
     if jax.default_backend() == "cpu":
         assert one_shot(base) == {**base, **ONE_SHOT} and one_shot() == ONE_SHOT
+        assert short_run(base) is base  # a short run's step keeps the CPU's full level
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert one_shot(base) is base and one_shot() is None
+    assert one_shot(base) == {**base, **ONE_SHOT_GPU} and one_shot() == ONE_SHOT_GPU
+    assert short_run(base) == {**base, **ONE_SHOT_GPU}
+    monkeypatch.setattr(jax, "default_backend", lambda: "tpu")
+    assert one_shot(base) is base and one_shot() is None and short_run() is None
 
 
 def test_a_one_shot_program_compiles_and_agrees_with_the_full_level():

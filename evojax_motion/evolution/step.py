@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import short_run as short_run_options
 from evojax_motion.compiler.basis import (
     neighbour_candidates,
     pca_basis,
@@ -265,6 +266,7 @@ def generation_stages(
     *,
     torque_limit=None,
     velocity_limit=None,
+    short_run: bool = False,
 ):
     """``(prepare, finish, compiler_options)``: the un-jitted generation step in two stages,
     ``prepare(db, conditions) -> Staged`` (neighbours, PCA,
@@ -274,8 +276,10 @@ def generation_stages(
     ``finish(db, conditions, generation, prepare(db, conditions))`` is `generation_step`'s
     step. ``lower``, ``upper``: ``(J,)`` joint limits [rad] (-inf / +inf: none);
     ``torque_limit`` [N m], ``velocity_limit`` [rad/s]: ``(J,)`` (inf: none; None: none at all),
-    e.g. `model.robot.Robot.torque_limit`."""
+    e.g. `model.robot.Robot.torque_limit`. ``short_run``: the options of a program that runs a
+    few tens of times (`compile_options.short_run`: `model.dynamics.is_short_run`)."""
     dyn, options = cpu_fast_path(dyn, optim_settings)
+    options = short_run_options(options, short_run)
     lower, upper = checked_limits(lower, upper)
     n_joints = lower.shape[0]
     tau_max = validate_rate_limits(torque_limit, n_joints, "torque limits")

@@ -152,8 +152,14 @@ def training_layout(dyn: Dynamics, generations: int, conditions: int) -> Dynamic
     and `SHORT_RUN_CONDITIONS`, where the scalar layout's compile would take longer than the
     generations it speeds up; ``dyn`` otherwise and on CPU. The traced-program cache keys by
     the layout itself (`run.workflow.cache_parts`)."""
-    short = generations * conditions <= SHORT_RUN_WORK and conditions <= SHORT_RUN_CONDITIONS
-    return one_shot_layout(dyn) if short else dyn
+    return one_shot_layout(dyn) if is_short_run(generations, conditions) else dyn
+
+
+def is_short_run(generations: int, conditions: int) -> bool:
+    """Whether a training run of ``generations`` x ``conditions`` is short: at most
+    `SHORT_RUN_WORK` and `SHORT_RUN_CONDITIONS` (`training_layout`; its step also compiles
+    without autotuning on GPUs, `compile_options.short_run`)."""
+    return generations * conditions <= SHORT_RUN_WORK and conditions <= SHORT_RUN_CONDITIONS
 
 
 @functools.cache

@@ -125,6 +125,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     against 40-45 s at 1,000 conditions on an H200 (CHANGELOG.md).
     """
     from evojax_motion.evolution.sharding import one_device_stages, sharded_generation_step
+    from evojax_motion.model.dynamics import is_short_run
     from evojax_motion.motion.database import count_human
     from evojax_motion.motion.timegrid import make_time_grid
     from evojax_motion.run.cache import Background, compile_traced, lower_traced
@@ -138,7 +139,10 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     if not one_device(cfg):
         step_fn, _ = sharded_generation_step(*fixed, devices=cfg.parallel.devices, **limits)
         return step_fn.lower(db, conditions, generation).compile()
-    prepare, finish, options = one_device_stages(*fixed, devices=cfg.parallel.devices, **limits)
+    short = is_short_run(cfg.evolution.generations, cfg.evolution.conditions)
+    prepare, finish, options = one_device_stages(
+        *fixed, devices=cfg.parallel.devices, short_run=short, **limits
+    )
     parts = {"n_human": n_human, **cache_parts(cfg, robot, dyn)}
     lowered = lower_traced(prepare, (db, conditions), {"program": "prepare", **parts}, options)
     first = Background(lowered.compile)
