@@ -12,12 +12,12 @@ programs that answer many queries (benchmarks, an online generator kept in a not
 full level: at level 0 a generation on the CPU took 3.3x as long.
 
 On GPUs XLA's backend level did not shorten the compiles that dominate there (one H200). What
-does is autotuning: XLA times candidate kernels of every matrix product while it compiles.
-`ONE_SHOT_GPU` turns it off for the same one-shot programs, and `short_run` for a short
-training run's generation step (`model.dynamics.is_short_run`), which runs a few tens of times.
-Measured on one H200 (CHANGELOG.md): the human costs' program compiled in 9.8 -> 1.5 s, a short
-run's two step programs in 11.6 / 15.5 -> 6.9 / 9.9 s, for 0.67 -> 0.75 ms and 20.6 -> 23.3 ms a
-call. Long runs and the generation benchmarks keep autotuning.
+does is the matrix products: XLA times candidate kernels for each (autotuning) and generates
+Triton kernels for them. `ONE_SHOT_GPU` turns both off for the same one-shot programs, and
+`short_run` for a short training run's generation step (`model.dynamics.is_short_run`), which
+runs a few tens of times. Measured on one H200 (CHANGELOG.md): the human costs' program
+compiled in 12.9 -> 1.1 s, a short run's two step programs in 11.6 / 15.5 -> 3.9 / 6.7 s, for
+0.51 -> 0.80 ms and 20.6 -> 22.5 ms a call. Long runs and the generation benchmarks keep both.
 """
 
 from __future__ import annotations
@@ -28,7 +28,9 @@ from collections.abc import Callable
 import jax
 
 ONE_SHOT: dict = {"xla_backend_optimization_level": 0}  # CPU
-ONE_SHOT_GPU: dict = {"xla_gpu_autotune_level": 0}  # GPUs: no kernel autotuning
+# GPUs: no kernel autotuning, and cuBLAS rather than Triton for matrix products (Triton's
+# GEMM kernels are generated and compiled per program)
+ONE_SHOT_GPU: dict = {"xla_gpu_autotune_level": 0, "xla_gpu_enable_triton_gemm": False}
 # XLA's default level, named: for a program that runs many times in a process and must keep the
 # full level where XLA_FLAGS lowers it for everything else (the test run compiles at level 0).
 FULL_LEVEL: dict = {"xla_backend_optimization_level": 3}

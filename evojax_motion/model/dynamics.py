@@ -158,7 +158,7 @@ def training_layout(dyn: Dynamics, generations: int, conditions: int) -> Dynamic
 def is_short_run(generations: int, conditions: int) -> bool:
     """Whether a training run of ``generations`` x ``conditions`` is short: at most
     `SHORT_RUN_WORK` and `SHORT_RUN_CONDITIONS` (`training_layout`; its step also compiles
-    without autotuning on GPUs, `compile_options.short_run`)."""
+    without kernel autotuning or Triton GEMMs on GPUs, `compile_options.short_run`)."""
     return generations * conditions <= SHORT_RUN_WORK and conditions <= SHORT_RUN_CONDITIONS
 
 
