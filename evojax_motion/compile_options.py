@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import jax
+import numpy as np
 
 ONE_SHOT: dict = {"xla_backend_optimization_level": 0}  # CPU
 # GPUs: no kernel autotuning, and cuBLAS rather than Triton for matrix products (Triton's
@@ -51,11 +53,37 @@ def one_shot(options: dict | None = None, enabled: bool = True) -> dict | None:
 
 def short_run(options: dict | None = None, enabled: bool = True) -> dict | None:
     """jit ``compiler_options`` for a program that runs a few tens of times (a short training
-    run's generation step): ``options`` with `ONE_SHOT_GPU`'s where ``enabled`` and the default
-    backend is a GPU, else ``options`` (on the CPU such a program keeps the full level)."""
+    run's generation step): ``options`` with those of `ONE_SHOT_GPU` that the compiler accepts
+    (`accepted`) where ``enabled`` and the default backend is a GPU, else ``options`` (on the
+    CPU such a program keeps the full level)."""
     if not enabled or jax.default_backend() != "gpu":
         return options
-    return {**(options or {}), **ONE_SHOT_GPU}
+    return {**(options or {}), **accepted(ONE_SHOT_GPU)}
+
+
+def accepted(options: dict) -> dict:
+    """The entries of ``options`` that the default backend's compiler accepts: all of them in
+    one probe where it accepts them together, else each tried alone (`compiler_accepts`). XLA
+    drops debug options between releases, and a jit with one it lacks fails to compile."""
+    if compiler_accepts(**options):
+        return options
+    return {k: v for k, v in options.items() if compiler_accepts(**{k: v})}
+
+
+@functools.cache
+def compiler_accepts(**options: Any) -> bool:
+    """Whether the default backend's compiler accepts these jit ``compiler_options``.
+
+    Tried once per set, on a one-operation program, rather than read from a version number:
+    XLA's CPU fusion emitters and their switch (`model.rnea.UNFUSED_CPU_OPTIONS`) are newer than
+    jax 0.5 and gone in later releases (jax 0.11 refuses it: "No such compile option").
+    """
+    probe = jax.jit(lambda x: x + 1.0).lower(np.zeros((), np.float32))
+    try:
+        probe.compile(options)
+    except jax.errors.JaxRuntimeError:
+        return False
+    return True
 
 
 def one_shot_jit(fn: Callable, **jit_kwargs) -> Callable[[], Callable]:

@@ -6,10 +6,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion import compile_options
 from evojax_motion.compile_options import (
     FULL_LEVEL,
     ONE_SHOT,
     ONE_SHOT_GPU,
+    accepted,
+    compiler_accepts,
     one_shot,
     one_shot_jit,
     short_run,
@@ -36,6 +39,23 @@ def test_one_shot_options_follow_the_backend(monkeypatch):
     assert short_run(base) == {**base, **ONE_SHOT_GPU}
     monkeypatch.setattr(jax, "default_backend", lambda: "tpu")
     assert one_shot(base) is base and one_shot() is None and short_run() is None
+
+
+def test_options_the_compiler_lacks_are_dropped(monkeypatch):
+    """A compiler option that XLA no longer has fails a jit's compile: `accepted` keeps only
+    those the compiler takes (asked by compiling a probe, `compiler_accepts`), and the GPU
+    options pass through it."""
+    assert compiler_accepts()
+    assert not compiler_accepts(xla_no_such_compile_option=False)
+    both = {**ONE_SHOT, "xla_no_such_compile_option": False}
+    assert accepted(both) == ONE_SHOT
+    assert accepted(ONE_SHOT) == ONE_SHOT
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(
+        compile_options, "compiler_accepts", lambda **o: "xla_gpu_enable_triton_gemm" not in o
+    )
+    lacking = {k: v for k, v in ONE_SHOT_GPU.items() if k != "xla_gpu_enable_triton_gemm"}
+    assert short_run() == lacking and one_shot() == lacking
 
 
 def test_a_one_shot_program_compiles_and_agrees_with_the_full_level():

@@ -19,7 +19,6 @@ the torque is the pure rigid-body one.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -28,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from evojax_motion.compile_options import compiler_accepts
 from evojax_motion.errors import UserError
 
 if TYPE_CHECKING:  # annotations only: robot.py does not need to import first
@@ -160,19 +160,3 @@ def is_short_run(generations: int, conditions: int) -> bool:
     `SHORT_RUN_WORK` and `SHORT_RUN_CONDITIONS` (`training_layout`; its step also compiles
     without kernel autotuning or Triton GEMMs on GPUs, `compile_options.short_run`)."""
     return generations * conditions <= SHORT_RUN_WORK and conditions <= SHORT_RUN_CONDITIONS
-
-
-@functools.cache
-def compiler_accepts(**options: Any) -> bool:
-    """Whether the default backend's compiler accepts these jit ``compiler_options``.
-
-    Tried once per set, on a one-operation program, rather than read from a version number:
-    XLA's CPU fusion emitters and their switch (`model.rnea.UNFUSED_CPU_OPTIONS`) are newer than
-    jax 0.5 and gone in later releases (jax 0.11 refuses it: "No such compile option").
-    """
-    probe = jax.jit(lambda x: x + 1.0).lower(np.zeros((), np.float32))
-    try:
-        probe.compile(options)
-    except jax.errors.JaxRuntimeError:
-        return False
-    return True
