@@ -15,9 +15,10 @@ On GPUs XLA's backend level did not shorten the compiles that dominate there (on
 does is the matrix products: XLA times candidate kernels for each (autotuning) and generates
 Triton kernels for them. `ONE_SHOT_GPU` turns both off for the same one-shot programs, and
 `short_run` for a short training run's generation step (`model.dynamics.is_short_run`), which
-runs a few tens of times. Measured on one H200 (CHANGELOG.md): the human costs' program
-compiled in 12.9 -> 1.1 s, a short run's two step programs in 11.6 / 15.5 -> 3.9 / 6.7 s, for
-0.51 -> 0.80 ms and 20.6 -> 22.5 ms a call. Long runs and the generation benchmarks keep both.
+runs a few tens of times. Measured on H200s (CHANGELOG.md, separate calls on two machines):
+the human costs' program compiled in 12.9 -> 1.1 s, a short run's two step programs in 11.6 /
+15.5 -> 3.9 / 6.7 s, for 0.51 -> 0.80 ms and 20.6 -> 22.5 ms a call. Long runs and the
+generation benchmarks keep both.
 """
 
 from __future__ import annotations
