@@ -61,7 +61,7 @@ def main(argv=None) -> None:
     jax.config.update("jax_log_compiles", True)
 
     import evojax_motion.run.workflow as workflow
-    from evojax_motion.model.dynamics import training_layout
+    from evojax_motion.model.dynamics import is_short_run, training_layout
     from evojax_motion.run import compilation
     from evojax_motion.run import training as train
     from evojax_motion.settings import load_config
@@ -81,7 +81,8 @@ def main(argv=None) -> None:
     db, conditions, *_, walls = train.initial_state(cfg, robot, dyn)
     phase[0] = "generation step"
     t0 = time.perf_counter()
-    compilation.compile_generation_step(cfg, robot, dyn, db, conditions)
+    short = is_short_run(cfg.evolution.generations, cfg.evolution.conditions)  # as `train`
+    compilation.compile_generation_step(cfg, robot, dyn, db, conditions, short_run=short)
     walls = {**walls, "step_seconds": time.perf_counter() - t0}
     rows = [
         {"phase": k[0], "program": k[1], "stage": k[2], "seconds": round(v, 3)}

@@ -113,7 +113,7 @@ class StagedStep:
         return total
 
 
-def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
+def compile_generation_step(cfg: Config, robot, dyn, db, conditions, short_run: bool = False):
     """The run's generation step, compiled for ``db`` and ``conditions``:
     ``step(db, conditions, generation) -> (db, GenerationStats)``.
 
@@ -123,9 +123,13 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     so that with JAX's compilation cache on a later process skips tracing them too. Traced and
     compiled: 10.3-10.6 against 13.3-13.6 s as one program at paper scale on 2 CPU cores, 27-29
     against 40-45 s at 1,000 conditions on an H200 (CHANGELOG.md).
+
+    ``short_run``: compiled as a short training run's step (`compile_options.short_run`: on
+    GPUs, fewer compile-time optimisations); `run.training` passes
+    `model.dynamics.is_short_run` of its config. The default, the full compile, is the one the
+    generation benchmarks measure.
     """
     from evojax_motion.evolution.sharding import one_device_stages, sharded_generation_step
-    from evojax_motion.model.dynamics import is_short_run
     from evojax_motion.motion.database import count_human
     from evojax_motion.motion.timegrid import make_time_grid
     from evojax_motion.run.cache import Background, compile_traced, lower_traced
@@ -139,9 +143,8 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions):
     if not one_device(cfg):
         step_fn, _ = sharded_generation_step(*fixed, devices=cfg.parallel.devices, **limits)
         return step_fn.lower(db, conditions, generation).compile()
-    short = is_short_run(cfg.evolution.generations, cfg.evolution.conditions)
     prepare, finish, options = one_device_stages(
-        *fixed, devices=cfg.parallel.devices, short_run=short, **limits
+        *fixed, devices=cfg.parallel.devices, short_run=short_run, **limits
     )
     parts = {"n_human": n_human, **cache_parts(cfg, robot, dyn)}
     lowered = lower_traced(prepare, (db, conditions), {"program": "prepare", **parts}, options)
@@ -201,8 +204,9 @@ class EarlyCompile:
     for a demonstrations file that the run will refuse (no sizes): a refused run would wait
     for its compiles before saying what was wrong."""
 
-    def __init__(self, cfg: Config, robot, dyn):
+    def __init__(self, cfg: Config, robot, dyn, short_run: bool = False):
         self._args = (cfg, robot, dyn)
+        self._short_run = short_run  # `compile_generation_step`'s
         sizes = expected_sizes(cfg, robot)
         self.setup = None if sizes is None else setup_programs(cfg, robot, dyn, sizes)
         step = sizes is not None and cfg.evolution.generations > 0 and one_device(cfg)
@@ -220,7 +224,11 @@ class EarlyCompile:
 
             def compile_step():
                 try:
-                    return signature(expected), compile_generation_step(*self._args, *expected)
+                    db, conditions = expected
+                    step = compile_generation_step(
+                        *self._args, db, conditions, short_run=self._short_run
+                    )
+                    return signature(expected), step
                 except Exception:  # compiled again in the foreground, which reports it
                     return None
 

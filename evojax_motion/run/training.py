@@ -387,7 +387,7 @@ def run_training(
 def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     import jax
 
-    from evojax_motion.model.dynamics import training_layout
+    from evojax_motion.model.dynamics import is_short_run, training_layout
     from evojax_motion.run import processes
     from evojax_motion.run.cache import signature
     from evojax_motion.run.workflow import (
@@ -405,6 +405,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resume = processes.together(lambda: check_run_dir(out, config_to_dict(cfg), resume))
     robot, dyn = make_robot_dynamics(cfg)
     dyn = training_layout(dyn, evo.generations, evo.conditions)
+    short = is_short_run(evo.generations, evo.conditions)  # its step's compile options too
     check_run_memory(cfg, robot)  # sizes that cannot fit: refused before any work
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
     processes.check_same(repr(resuming), SHARED_FOLDER)
@@ -412,7 +413,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     # A new run compiles its step and setup programs in background threads: from now on, or,
     # where the demonstrations are synthesised, once their synthesis is traced. (Nothing for a
     # demonstrations file that `initial_state` will refuse: `run.compilation.expected_sizes`.)
-    early = None if resuming or not primary else compilation.EarlyCompile(cfg, robot, dyn)
+    early = None if resuming or not primary else compilation.EarlyCompile(cfg, robot, dyn, short)
     if early is not None and not synthesises(cfg, robot, dyn):
         early.start()
     try:
@@ -465,7 +466,9 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         if early_step is not None and early_step[0] == signature((db, conditions)):
             compiled = early_step[1]
         else:
-            compiled = compilation.compile_generation_step(cfg, robot, dyn, db, conditions)
+            compiled = compilation.compile_generation_step(
+                cfg, robot, dyn, db, conditions, short_run=short
+            )
     # What the demonstrations and conditions did not hide: the wait for the early compile, or
     # the compile here where there was none (or its program does not fit).
     timings["compile_seconds"] = waited + time.perf_counter() - t0

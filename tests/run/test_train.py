@@ -336,6 +336,50 @@ def test_staged_step_matches_the_one_program_step_and_reuses_its_traces(monkeypa
     np.testing.assert_array_equal(again(db, conditions, np.int32(1))[0].q, first.q)
 
 
+class _Stop(Exception):
+    """Raised by a stand-in to end a call once its arguments are recorded."""
+
+
+def test_only_train_compiles_its_step_as_a_short_run(tmp_path, monkeypatch):
+    """A short run's step compiles with `compile_options.short_run` (on GPUs, no autotuning):
+    `train` passes `model.dynamics.is_short_run` of its config to `compile_generation_step`
+    (the early compile and the foreground one), whose default, the full compile that the
+    generation benchmarks measure, does not follow the config."""
+    from evojax_motion.evolution import sharding
+    from evojax_motion.model.dynamics import is_short_run
+    from evojax_motion.run import compilation
+    from evojax_motion.run import training as train
+    from evojax_motion.run.workflow import make_robot_dynamics
+    from evojax_motion.settings import load_config
+
+    cfg = load_config(TINY, ["train.plots=false"])
+    assert is_short_run(cfg.evolution.generations, cfg.evolution.conditions)
+    robot, dyn = make_robot_dynamics(cfg)
+    stages: list = []
+
+    def stages_stand_in(*args, **kwargs):
+        stages.append(kwargs["short_run"])
+        raise _Stop
+
+    monkeypatch.setattr(sharding, "one_device_stages", stages_stand_in)
+    db, conditions = compilation.expected_inputs(cfg, robot)
+    for kwargs, expected in (({}, False), ({"short_run": True}, True)):
+        with pytest.raises(_Stop):
+            compilation.compile_generation_step(cfg, robot, dyn, db, conditions, **kwargs)
+        assert stages.pop() is expected
+
+    calls: list = []
+
+    def step_stand_in(*args, **kwargs):
+        calls.append(kwargs.get("short_run"))
+        raise _Stop
+
+    monkeypatch.setattr(compilation, "compile_generation_step", step_stand_in)
+    with pytest.raises(_Stop):
+        train.run_training(cfg, tmp_path / "run", progress=False)
+    assert calls == [True, True]  # the early compile (its failure is left to the foreground)
+
+
 def _db(path):
     from evojax_motion.motion.database import load_database
 
@@ -691,8 +735,8 @@ def test_an_error_queueing_the_next_generation_comes_after_the_files_of_the_last
 
     real = compilation.compile_generation_step
 
-    def failing_at_3(*args):
-        step = real(*args)
+    def failing_at_3(*args, **kwargs):
+        step = real(*args, **kwargs)
 
         def call(db, conditions, generation):
             if int(generation) == 3:
