@@ -125,7 +125,7 @@ def compile_generation_step(cfg: Config, robot, dyn, db, conditions, short_run: 
     against 40-45 s at 1,000 conditions on an H200 (CHANGELOG.md).
 
     ``short_run``: compiled as a short training run's step (`compile_options.short_run`: on
-    GPUs, fewer compile-time optimisations); `run.training` passes
+    GPUs, no kernel autotuning or Triton GEMMs); `run.training` passes
     `model.dynamics.is_short_run` of its config. The default, the full compile, is the one the
     generation benchmarks measure.
     """
