@@ -1,8 +1,9 @@
 """Where a fresh process's compile time goes before the first generation: every program JAX
 traces and compiles while `run.training.initial_state` builds generation 0 (demonstrations, then the
 condition set and costs), and the generation step, grouped by phase and program name, with the
-dynamics `train` compiles them with (`model.dynamics.training_layout`). Also each phase's wall
-time, one after the other here (`train` overlaps the step's compile with the setup).
+dynamics and step options `train` compiles them with (`model.dynamics.training_dynamics`). Also
+each phase's wall time, one after the other here (`train` overlaps the step's compile with the
+setup).
 
 Reads JAX's own log lines (``jax_log_compiles``: "Finished tracing ... / XLA compilation of
 NAME in S sec"). Run it in a fresh process with no compilation cache to see cold compiles.
@@ -61,14 +62,15 @@ def main(argv=None) -> None:
     jax.config.update("jax_log_compiles", True)
 
     import evojax_motion.run.workflow as workflow
-    from evojax_motion.model.dynamics import is_short_run, training_layout
+    from evojax_motion.model.dynamics import training_dynamics
     from evojax_motion.run import compilation
     from evojax_motion.run import training as train
     from evojax_motion.settings import load_config
 
     cfg = load_config(args.config)
     robot, dyn = workflow.make_robot_dynamics(cfg)
-    dyn = training_layout(dyn, cfg.evolution.generations, cfg.evolution.conditions)  # as `train`
+    evo = cfg.evolution
+    dyn, short = training_dynamics(dyn, evo.generations, evo.conditions)  # as `train`
     demos = workflow.demonstrations  # what `run.training.initial_state` calls
 
     def timed_demos(*a, **k):  # the phases: demonstrations, then everything else of the setup
@@ -81,7 +83,6 @@ def main(argv=None) -> None:
     db, conditions, *_, walls = train.initial_state(cfg, robot, dyn)
     phase[0] = "generation step"
     t0 = time.perf_counter()
-    short = is_short_run(cfg.evolution.generations, cfg.evolution.conditions)  # as `train`
     compilation.compile_generation_step(cfg, robot, dyn, db, conditions, short_run=short)
     walls = {**walls, "step_seconds": time.perf_counter() - t0}
     rows = [

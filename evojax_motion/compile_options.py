@@ -44,12 +44,9 @@ def one_shot(options: dict | None = None, enabled: bool = True) -> dict | None:
     `ONE_SHOT`'s where ``enabled`` and the default backend is the CPU, `ONE_SHOT_GPU`'s where
     it is a GPU, else ``options``. Reads the backend: call it when the program is made, not at
     import."""
-    if not enabled:
-        return options
-    backend = jax.default_backend()
-    if backend == "cpu":
+    if enabled and jax.default_backend() == "cpu":
         return {**(options or {}), **ONE_SHOT}
-    return short_run(options) if backend == "gpu" else options
+    return short_run(options, enabled)  # GPUs: the same options as a short run's step
 
 
 def short_run(options: dict | None = None, enabled: bool = True) -> dict | None:

@@ -155,6 +155,13 @@ def training_layout(dyn: Dynamics, generations: int, conditions: int) -> Dynamic
     return one_shot_layout(dyn) if is_short_run(generations, conditions) else dyn
 
 
+def training_dynamics(dyn: Dynamics, generations: int, conditions: int) -> tuple[Dynamics, bool]:
+    """``(dynamics, short_run)`` of a training run of ``generations`` x ``conditions``: its
+    `training_layout` and `is_short_run` (its step's compile options,
+    `run.compilation.compile_generation_step`), decided together (`run.training`)."""
+    return training_layout(dyn, generations, conditions), is_short_run(generations, conditions)
+
+
 def is_short_run(generations: int, conditions: int) -> bool:
     """Whether a training run of ``generations`` x ``conditions`` is short: at most
     `SHORT_RUN_WORK` and `SHORT_RUN_CONDITIONS` (`training_layout`; its step also compiles

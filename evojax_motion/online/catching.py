@@ -56,7 +56,6 @@ import numpy as np
 
 from evojax_motion.compiler.basis import Neighbours
 from evojax_motion.errors import UserError
-from evojax_motion.linalg.precision import exact_matmuls
 from evojax_motion.model.dynamics import Dynamics
 from evojax_motion.model.robot import Robot
 from evojax_motion.motion.database import Database
@@ -437,9 +436,8 @@ def make_catcher(
         catch_query, dyn, grid, lower, upper, gravity, basis_settings, settings, catch,
         palm=palm_normal(robot),
     )  # fmt: skip
-    jitted = jax.jit(exact_matmuls(fn), compiler_options=options)
     parts = None if cache_parts is None else {**cache_parts, "catch": repr(catch)}
-    return kept_trace(jitted, "online.catch", parts, options)
+    return kept_trace(fn, "online.catch", parts, options)
 
 
 def validate_ball(ball, where: str = "--ball") -> tuple[np.ndarray, np.ndarray]:

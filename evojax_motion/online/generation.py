@@ -342,13 +342,11 @@ def make_online_generator(
     dyn, options = program_dynamics(dyn, one_shot, fast_path)
     fixed = (dyn, grid, lower, upper, basis_settings, settings)
     fn = functools.partial(online_query, *fixed)
-    jitted = jax.jit(exact_matmuls(fn), compiler_options=options)
-    whole = kept_trace(jitted, "online.generate", cache_parts, options)
+    whole = kept_trace(fn, "online.generate", cache_parts, options)
     if not one_shot:
         return whole
     fn = functools.partial(online_query, *fixed, corrections=False)
-    jitted = jax.jit(exact_matmuls(fn), compiler_options=options)
-    uncorrected = kept_trace(jitted, "online.generate.uncorrected", cache_parts, options)
+    uncorrected = kept_trace(fn, "online.generate.uncorrected", cache_parts, options)
 
     def generate(db, targets, duration, q_start) -> OnlineResult:
         result = uncorrected(db, targets, duration, q_start)
@@ -369,9 +367,11 @@ def program_dynamics(
     return one_shot_layout(dyn), one_shot_options(options)
 
 
-def kept_trace(jitted, name: str, cache_parts: Any, options: dict | None) -> Callable:
-    """``jitted`` (with jit ``options``), or, where ``cache_parts`` is given, its
-    `run.cache.traced_program` under ``name`` and those parts."""
+def kept_trace(fn: Callable, name: str, cache_parts: Any, options: dict | None) -> Callable:
+    """The pure query ``fn`` jitted with ``options`` and exact float32 matrix products, or,
+    where ``cache_parts`` is given, that program's `run.cache.traced_program` under ``name`` and
+    those parts."""
+    jitted = jax.jit(exact_matmuls(fn), compiler_options=options)
     if cache_parts is None:
         return jitted
     from evojax_motion.run.cache import traced_program

@@ -387,7 +387,7 @@ def run_training(
 def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     import jax
 
-    from evojax_motion.model.dynamics import is_short_run, training_layout
+    from evojax_motion.model.dynamics import training_dynamics
     from evojax_motion.run import processes
     from evojax_motion.run.cache import signature
     from evojax_motion.run.workflow import (
@@ -404,8 +404,7 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     processes.check_devices(cfg.parallel.devices)
     resume = processes.together(lambda: check_run_dir(out, config_to_dict(cfg), resume))
     robot, dyn = make_robot_dynamics(cfg)
-    dyn = training_layout(dyn, evo.generations, evo.conditions)
-    short = is_short_run(evo.generations, evo.conditions)  # its step's compile options too
+    dyn, short = training_dynamics(dyn, evo.generations, evo.conditions)
     check_run_memory(cfg, robot)  # sizes that cannot fit: refused before any work
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
     processes.check_same(repr(resuming), SHARED_FOLDER)
