@@ -10,7 +10,7 @@ demonstrations; `run.cache`) and then again with the cache that its first run fi
   ``conditions_seconds``, ``compile_seconds``, ``seconds_per_generation`` x generations) beside the
   wall time measured here;
 - ``generate`` and ``catch``: one query each on the database that the cold ``train`` wrote
-  (``--target`` / ``--ball`` as in the README).
+  (``--target`` / ``--ball`` as in the README; on the host's CPU, their default ``--device``).
 
 Wall times are the parent's clock around each process (launch to exit). Targets:
 ``train configs/catch_ball.yaml`` <= 10 s cold on 2 CPU cores, <= 15 s on one H100, <= 3 s

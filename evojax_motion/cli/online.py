@@ -44,7 +44,19 @@ def _common(p: argparse.ArgumentParser) -> None:
         help=f"largest miss of the hand at the target [mm] (default {DEFAULT_TOLERANCE_MM:g})",
     )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    add_query_arguments(p)
+
+
+def add_query_arguments(p: argparse.ArgumentParser) -> None:
+    """``--dynamics`` and ``--device``: how a command's online queries are computed."""
     p.add_argument("--dynamics", choices=("rnea", "mjx"), default="rnea", help="torque backend")
+    p.add_argument(
+        "--device",
+        choices=("cpu", "default"),
+        default="cpu",
+        help="where the queries run: the host's CPU (default; a query takes milliseconds, a "
+        "GPU's start-up and compile take seconds) or JAX's default device",
+    )
 
 
 def add_online_parsers(subparsers) -> None:
@@ -199,10 +211,24 @@ def _session(path: str, mtime_ns: int, backend: str):
     return model, gen, make_reach_checker(*args)
 
 
+def _use_device(choice: str) -> None:
+    """``--device``: with ``cpu``, make the host's CPU JAX's platform for this process. That
+    takes effect only where no JAX backend is started yet (the command line's own process); a
+    process already computing on a GPU keeps it."""
+    if choice == "cpu":
+        import jax
+
+        jax.config.update("jax_platforms", "cpu")
+
+
 def _open(args):
+    """The `_session` of ``--db``, on ``--device``, with the compile cache on."""
     from evojax_motion.online.generation import resolve_database_path
+    from evojax_motion.run.cache import enable_compile_cache
     from evojax_motion.run.workflow import check_database_of_run
 
+    _use_device(args.device)  # before anything starts a JAX backend
+    enable_compile_cache()
     path = resolve_database_path(args.db)
     if not path.is_file():
         raise UserError(f"{path}: database file not found")
@@ -224,9 +250,6 @@ def cmd_generate(args) -> int:
     from evojax_motion.online.reach import nearest_reachable
 
     fmt = _check_out(args)
-    from evojax_motion.run.cache import enable_compile_cache
-
-    enable_compile_cache()
     opened = _open(args)
     model, _, check = opened
     target = np.asarray(args.target, np.float32)
@@ -315,9 +338,6 @@ def cmd_catch(args) -> int:
     fmt = _check_out(args)
     p0, v0 = validate_ball(args.ball)
     catch = _catch_settings(args)
-    from evojax_motion.run.cache import enable_compile_cache
-
-    enable_compile_cache()
     opened = _open(args)
     model = opened[0]
     catcher = _catcher(opened, catch)

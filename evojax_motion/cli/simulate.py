@@ -33,6 +33,8 @@ _NEAR_PATH = 1.0  # [m] ball positions this close to the hand's path are kept in
 
 def add_simulate_parser(subparsers) -> None:
     """Add ``simulate`` to an argparse subparsers object."""
+    from evojax_motion.cli.online import add_query_arguments
+
     p = subparsers.add_parser(
         "simulate", help="execute a planned motion in MuJoCo physics (tracking, catching)"
     )
@@ -55,7 +57,7 @@ def add_simulate_parser(subparsers) -> None:
     p.add_argument("--out", default=None, help="folder for simulation.json and simulation.gif")
     p.add_argument("--force", action="store_true", help="overwrite the files in --out")
     p.add_argument("--renderer", choices=("auto", "mujoco", "stick"), default="auto")
-    p.add_argument("--dynamics", choices=("rnea", "mjx"), default="rnea", help="torque backend")
+    add_query_arguments(p)
     p.set_defaults(func=cmd_simulate, drag=0.0)  # the simulated ball flies in vacuum, as planned
 
 
@@ -163,11 +165,9 @@ def cmd_simulate(args) -> int:
     from evojax_motion.online.explain import describe_limits
     from evojax_motion.online.simulate import Plan, simulate, summarise
     from evojax_motion.report.render import RenderUnavailable
-    from evojax_motion.run.cache import enable_compile_cache
     from evojax_motion.settings.online import SimSettings
 
     out = _check_args(args)
-    enable_compile_cache()
     opened = _open(args)
     model = opened[0]
     robot = model.robot

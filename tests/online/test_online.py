@@ -492,6 +492,66 @@ def test_cli_generate_end_to_end(env, db_file, tmp_path, capsys, monkeypatch):
     np.testing.assert_allclose(data.tau, ref, atol=TOL_TAU)
 
 
+_SPY_ON_PLATFORMS = """
+import sys
+
+import jax
+from jax._src import xla_bridge
+
+seen = []
+update = jax.config.update
+
+
+def spy(name, value):
+    if name == "jax_platforms":
+        seen.append((value, xla_bridge.backends_are_initialized()))
+    update(name, value)
+
+
+jax.config.update = spy
+from evojax_motion.cli.entry import main
+
+status = main(sys.argv[1:])
+print("platforms:", seen, jax.default_backend(), status)
+"""
+
+
+@pytest.mark.slow
+def test_queries_run_on_the_cpu_chosen_before_any_backend_starts(env, db_file, tmp_path):
+    """``--device cpu`` (the default): the command line makes the host's CPU JAX's platform
+    before anything starts a backend (else a GPU machine would still start CUDA and compile
+    there); a fresh process, as a user's command is."""
+    import os
+    import subprocess
+    import sys
+
+    target = [f"{v:.4f}" for v in env.db.condition[3] + 0.01]
+    argv = ["generate", "--db", str(db_file), "--target", *target, "--out", str(tmp_path / "a.csv")]
+    environ = {**os.environ, "EVOJAX_MOTION_JAX_CACHE": str(tmp_path / "cache")}  # as users run
+    environ.pop("JAX_PLATFORMS", None)
+    run = subprocess.run(
+        [sys.executable, "-c", _SPY_ON_PLATFORMS, *argv],
+        capture_output=True, text=True, env=environ, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert "platforms: [('cpu', False)] cpu 0" in run.stdout
+
+
+def test_device_default_leaves_the_platform_to_jax(env, db_file, tmp_path, monkeypatch):
+    """``--device default`` does not touch JAX's platform setting."""
+    prepare_cli(monkeypatch, cli_session(env, db_file))
+    calls = []
+    update = jax.config.update
+    monkeypatch.setattr(jax.config, "update", lambda k, v: (calls.append(k), update(k, v)))
+    target = [f"{v:.4f}" for v in env.db.condition[3] + 0.01]
+    out = str(tmp_path / "a.csv")
+    argv = ["generate", "--db", str(db_file), "--target", *target, "--out", out]
+    assert run_cli([*argv, "--device", "default"]) == 0
+    assert "jax_platforms" not in calls
+    assert run_cli([*argv, "--force"]) == 0
+    assert "jax_platforms" in calls
+
+
 def test_a_kept_trace_gives_the_same_motion_and_is_keyed_by_what_it_closes_over(
     env, db_file, tmp_path, monkeypatch
 ):
