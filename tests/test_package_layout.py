@@ -1,10 +1,13 @@
-"""The package's layout: module-level imports between its modules form no cycle.
+"""The package's layout: module-level imports between its modules form no cycle, and importing
+a module starts no JAX backend.
 
 A cycle makes import order matter and hides which stage depends on which (docs/architecture.md).
 Imports inside functions are left out: they are reserved for expensive optional dependencies.
 """
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "evojax_motion"
@@ -90,3 +93,26 @@ def test_settings_import_nothing_of_the_pipeline():
         if name.startswith("evojax_motion.settings"):
             others = {m for m in imports if not m.startswith("evojax_motion.settings")}
             assert others <= {"evojax_motion", "evojax_motion.errors"}, (name, others)
+
+
+_IMPORT_EVERY_MODULE = """
+import importlib, pkgutil
+from jax._src import xla_bridge
+import evojax_motion
+for m in pkgutil.walk_packages(evojax_motion.__path__, "evojax_motion."):
+    if not m.name.endswith("__main__"):
+        importlib.import_module(m.name)
+print("backends started:", xla_bridge.backends_are_initialized())
+"""
+
+
+def test_importing_a_module_starts_no_jax_backend():
+    """No module makes an array or asks for a device at import: the command line chooses the
+    platform (``--device``, `cli.online.use_device`) after its imports, which only works while
+    no backend has started. A fresh process, as the command line's."""
+    run = subprocess.run(
+        [sys.executable, "-c", _IMPORT_EVERY_MODULE],
+        capture_output=True, text=True, cwd=PACKAGE.parent, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert "backends started: False" in run.stdout

@@ -50,6 +50,11 @@ def _common(p: argparse.ArgumentParser) -> None:
 def add_query_arguments(p: argparse.ArgumentParser) -> None:
     """``--dynamics`` and ``--device``: how a command's online queries are computed."""
     p.add_argument("--dynamics", choices=("rnea", "mjx"), default="rnea", help="torque backend")
+    add_device_argument(p)
+
+
+def add_device_argument(p: argparse.ArgumentParser) -> None:
+    """``--device`` (`use_device`) of a command whose JAX work is a few one-off queries."""
     p.add_argument(
         "--device",
         choices=("cpu", "default"),
@@ -211,7 +216,7 @@ def _session(path: str, mtime_ns: int, backend: str):
     return model, gen, make_reach_checker(*args)
 
 
-def _use_device(choice: str) -> None:
+def use_device(choice: str) -> None:
     """``--device``: with ``cpu``, make the host's CPU JAX's platform for this process. That
     takes effect only where no JAX backend is started yet (the command line's own process); a
     process already computing on a GPU keeps it."""
@@ -227,7 +232,7 @@ def _open(args):
     from evojax_motion.run.cache import enable_compile_cache
     from evojax_motion.run.workflow import check_database_of_run
 
-    _use_device(args.device)  # before anything starts a JAX backend
+    use_device(args.device)  # before anything starts a JAX backend
     enable_compile_cache()
     path = resolve_database_path(args.db)
     if not path.is_file():

@@ -8,6 +8,8 @@ import sys
 
 def add_report_parser(subparsers) -> None:
     """Add ``report`` to the ``evojax-motion`` subcommands (``cli.entry.build_parser``)."""
+    from evojax_motion.cli.online import add_device_argument
+
     p = subparsers.add_parser(
         "report",
         help="the paper's figures and an HTML page from a run directory",
@@ -36,11 +38,15 @@ def add_report_parser(subparsers) -> None:
     p.add_argument("--gif-frames", type=int, default=36, help="frames of the catch animation")
     p.add_argument("--no-animation", action="store_true", help="skip catch.gif")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
+    add_device_argument(p)
     p.set_defaults(func=run_report)
 
 
 def run_report(args) -> int:
     """The ``report`` subcommand: 0 complete, 1 incomplete run folder (figures still written)."""
+    from evojax_motion.cli.online import use_device
+
+    use_device(args.device)  # before anything starts a JAX backend
     from evojax_motion.report.build import make_report
     from evojax_motion.run.cache import enable_compile_cache
 
