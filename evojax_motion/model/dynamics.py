@@ -119,6 +119,29 @@ def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
     return dyn, None
 
 
+def slow_cpu_layout_note(dyn: Dynamics) -> str | None:
+    """A line for the user where the CPU's RNEA cannot run in its fast layout, else None.
+
+    The scalar layout is the fast one on CPU only with XLA's CPU fusion emitters off
+    (`unfused_cpu_program`). jax 0.11 and later have no switch for them; under them the scalar
+    layout's gradients compile for minutes, so programs keep the vector layout, which takes ~8x
+    as long a generation at paper scale (2.3-2.5 s against 0.25-0.36 s on 2 cores,
+    CHANGELOG.md)."""
+    from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS  # as in make_dynamics
+
+    if (
+        jax.default_backend() != "cpu"
+        or dyn.backend != "rnea"
+        or compiler_accepts(**UNFUSED_CPU_OPTIONS)
+    ):
+        return None
+    return (
+        f"note: jax {jax.__version__} cannot switch off XLA's CPU fusion emitters, so the "
+        "RNEA runs in its slower vector layout on this CPU: a generation takes ~8x as long as "
+        "with jax 0.10 (README.md, 'CPU and jax versions')"
+    )
+
+
 def one_shot_layout(dyn: Dynamics) -> Dynamics:
     """The dynamics for a program that runs once or twice (the command line's ``generate`` and
     ``catch``, `compile_options.ONE_SHOT`), where its compile is most of the wait.

@@ -387,7 +387,7 @@ def run_training(
 def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     import jax
 
-    from evojax_motion.model.dynamics import training_dynamics
+    from evojax_motion.model.dynamics import slow_cpu_layout_note, training_dynamics
     from evojax_motion.run import processes
     from evojax_motion.run.cache import signature
     from evojax_motion.run.workflow import (
@@ -405,6 +405,9 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
     resume = processes.together(lambda: check_run_dir(out, config_to_dict(cfg), resume))
     robot, dyn = make_robot_dynamics(cfg)
     dyn, short = training_dynamics(dyn, evo.generations, evo.conditions)
+    note = slow_cpu_layout_note(dyn)
+    if note and processes.is_primary():
+        log(note)
     check_run_memory(cfg, robot)  # sizes that cannot fit: refused before any work
     resuming = resume and (out / CHECKPOINT_DIR).is_dir()
     processes.check_same(repr(resuming), SHARED_FOLDER)

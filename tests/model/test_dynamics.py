@@ -315,6 +315,28 @@ def test_unfused_program_only_where_the_compiler_takes_its_options(monkeypatch):
     assert unfused_cpu_program(dyn) == (dyn, None)
 
 
+def test_a_run_is_told_when_the_cpu_cannot_have_the_fast_layout(monkeypatch):
+    """`slow_cpu_layout_note`: a line (naming the jax version and the README section) exactly
+    where the CPU compiler refuses the fusion-emitter switch with the RNEA backend; none for
+    MJX, where the layouts do not apply."""
+    from evojax_motion.compile_options import compiler_accepts
+    from evojax_motion.model import dynamics as dynamics_module
+    from evojax_motion.model.dynamics import slow_cpu_layout_note
+    from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS
+
+    robot = ROBOTS["mahru_arm"]()
+    dyn = make_dynamics(robot)
+    cpu = jax.default_backend() == "cpu"
+    assert (slow_cpu_layout_note(dyn) is None) == (
+        not cpu or compiler_accepts(**UNFUSED_CPU_OPTIONS)
+    )
+    monkeypatch.setattr(dynamics_module, "compiler_accepts", lambda **options: False)
+    note = slow_cpu_layout_note(dyn)
+    if cpu:
+        assert note is not None and jax.__version__ in note and "CPU and jax versions" in note
+    assert slow_cpu_layout_note(make_dynamics(robot, "mjx")) is None
+
+
 def test_one_shot_layout_is_the_vector_one_on_accelerators_only(monkeypatch):
     """`one_shot_layout`: on accelerators an RNEA `Dynamics` of another layout becomes the
     vector one (same robot and dtype; the layouts' torques are checked against `mj_inverse`
