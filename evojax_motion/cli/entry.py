@@ -51,10 +51,12 @@ def _cmd_train(args) -> int:
 
         initialize_distributed()
     from evojax_motion.run.cache import enable_compile_cache
+    from evojax_motion.run.memory import gpu_memory_on_demand
     from evojax_motion.run.training import run_training
     from evojax_motion.settings import load_config
 
     cfg = load_config(args.config, args.set)
+    gpu_memory_on_demand(cfg)  # before anything starts a JAX backend
     enable_compile_cache()  # a second run of the same config skips tracing and compiling
     run_training(cfg, Path(args.out), resume=args.resume, progress=not args.quiet)
     return 0

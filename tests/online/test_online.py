@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -538,8 +539,12 @@ def test_queries_run_on_the_cpu_chosen_before_any_backend_starts(env, db_file, t
 
 
 def test_device_default_leaves_the_platform_to_jax(env, db_file, tmp_path, monkeypatch):
-    """``--device default`` does not touch JAX's platform setting."""
+    """``--device default`` does not touch JAX's platform setting; it lets a GPU take memory as
+    the queries need it (unless the environment says)."""
+    from evojax_motion.run.memory import PREALLOCATE_ENV
+
     prepare_cli(monkeypatch, cli_session(env, db_file))
+    monkeypatch.delenv(PREALLOCATE_ENV, raising=False)
     calls = []
     update = jax.config.update
     monkeypatch.setattr(jax.config, "update", lambda k, v: (calls.append(k), update(k, v)))
@@ -547,7 +552,7 @@ def test_device_default_leaves_the_platform_to_jax(env, db_file, tmp_path, monke
     out = str(tmp_path / "a.csv")
     argv = ["generate", "--db", str(db_file), "--target", *target, "--out", out]
     assert run_cli([*argv, "--device", "default"]) == 0
-    assert "jax_platforms" not in calls
+    assert "jax_platforms" not in calls and os.environ[PREALLOCATE_ENV] == "false"
     assert run_cli([*argv, "--force"]) == 0
     assert "jax_platforms" in calls
 

@@ -380,6 +380,31 @@ def test_only_train_compiles_its_step_as_a_short_run(tmp_path, monkeypatch):
     assert calls == [True, True]  # the early compile (its failure is left to the foreground)
 
 
+def test_a_short_run_takes_gpu_memory_as_it_needs_it(tmp_path, monkeypatch):
+    """`run.memory.gpu_memory_on_demand`: a short run turns JAX's GPU memory reservation off
+    (it reads the variable when its backend starts, so `train` sets it before anything starts
+    one); a long run and a user's own setting are left alone."""
+    from evojax_motion.cli.entry import main
+    from evojax_motion.run import cache
+    from evojax_motion.run import training as train
+    from evojax_motion.run.memory import PREALLOCATE_ENV, gpu_memory_on_demand
+    from evojax_motion.settings import load_config
+
+    monkeypatch.delenv(PREALLOCATE_ENV, raising=False)
+    long_run = load_config(TINY, ["evolution.generations=100000"])
+    assert not gpu_memory_on_demand(long_run) and PREALLOCATE_ENV not in os.environ
+    monkeypatch.setenv(PREALLOCATE_ENV, "true")
+    assert not gpu_memory_on_demand(load_config(TINY, [])) and os.environ[PREALLOCATE_ENV] == "true"
+    monkeypatch.delenv(PREALLOCATE_ENV)
+    seen: list = []  # the variable when `train` turns on the cache, which starts the backend
+    monkeypatch.setattr(
+        cache, "enable_compile_cache", lambda: seen.append(os.getenv(PREALLOCATE_ENV))
+    )
+    monkeypatch.setattr(train, "run_training", lambda *args, **kwargs: None)
+    assert main(["train", str(TINY), "--out", str(tmp_path / "run")]) == 0
+    assert seen == ["false"]
+
+
 def _db(path):
     from evojax_motion.motion.database import load_database
 
