@@ -124,9 +124,9 @@ def slow_cpu_layout_note(dyn: Dynamics) -> str | None:
 
     The scalar layout is the fast one on CPU only with XLA's CPU fusion emitters off
     (`unfused_cpu_program`). jax 0.11 and later have no switch for them; under them the scalar
-    layout's gradients compile for minutes, so programs keep the vector layout, which takes ~8x
-    as long a generation at paper scale (2.3-2.5 s against 0.25-0.36 s on 2 cores,
-    CHANGELOG.md)."""
+    layout's gradients compile for minutes, so programs keep the vector layout, which takes ~6x
+    as long a generation at paper scale (on 2 cores of one machine, jax 0.10.2: 1.65-1.71 s
+    under the emitters against 0.25-0.36 s; CHANGELOG.md)."""
     from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS  # as in make_dynamics
 
     if (
@@ -137,7 +137,7 @@ def slow_cpu_layout_note(dyn: Dynamics) -> str | None:
         return None
     return (
         f"note: jax {jax.__version__} cannot switch off XLA's CPU fusion emitters, so the "
-        "RNEA runs in its slower vector layout on this CPU: a generation takes ~8x as long as "
+        "RNEA runs in its slower vector layout on this CPU: a generation takes ~6x as long as "
         "with jax 0.10 (README.md, 'CPU and jax versions')"
     )
 
