@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import os
 from pathlib import Path
 
 import numpy as np
@@ -219,17 +218,18 @@ def _session(path: str, mtime_ns: int, backend: str):
 
 def use_device(choice: str) -> None:
     """``--device``: with ``cpu``, make the host's CPU JAX's platform for this process; with
-    ``default``, let a GPU backend take memory as the queries need it (`run.memory.PREALLOCATE_ENV`,
-    unless the environment says). Either takes effect only where no JAX backend is started yet
-    (the command line's own process); a process already computing on a GPU keeps it."""
+    ``default``, let a GPU backend take memory as the queries need it
+    (`run.memory.take_gpu_memory_on_demand`). Either takes effect only where no JAX backend is
+    started yet (the command line's own process); a process already computing on a GPU keeps
+    it."""
     if choice == "cpu":
         import jax
 
         jax.config.update("jax_platforms", "cpu")
     else:
-        from evojax_motion.run.memory import PREALLOCATE_ENV
+        from evojax_motion.run.memory import take_gpu_memory_on_demand
 
-        os.environ.setdefault(PREALLOCATE_ENV, "false")
+        take_gpu_memory_on_demand()
 
 
 def _open(args):

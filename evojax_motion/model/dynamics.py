@@ -110,13 +110,19 @@ def unfused_cpu_program(dyn: Dynamics) -> tuple[Dynamics, dict | None]:
     """
     from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS  # as in make_dynamics
 
-    if (
-        jax.default_backend() == "cpu"
-        and dyn.backend == "rnea"
-        and compiler_accepts(**UNFUSED_CPU_OPTIONS)
-    ):
+    if _fusion_switch(dyn):
         return make_dynamics(dyn.robot, "rnea", dyn.dtype, "scalar"), dict(UNFUSED_CPU_OPTIONS)
     return dyn, None
+
+
+def _fusion_switch(dyn: Dynamics) -> bool | None:
+    """Whether the CPU compiler takes the fusion-emitter switch that the scalar layout needs
+    there (`compiler_accepts`); None where it does not apply (another backend, MJX)."""
+    from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS
+
+    if jax.default_backend() != "cpu" or dyn.backend != "rnea":
+        return None
+    return compiler_accepts(**UNFUSED_CPU_OPTIONS)
 
 
 def slow_cpu_layout_note(dyn: Dynamics) -> str | None:
@@ -127,13 +133,7 @@ def slow_cpu_layout_note(dyn: Dynamics) -> str | None:
     layout's gradients compile for minutes, so programs keep the vector layout, which takes ~6x
     as long a generation at paper scale (on 2 cores of one machine, jax 0.10.2: 1.65-1.71 s
     under the emitters against 0.25-0.36 s; CHANGELOG.md)."""
-    from evojax_motion.model.rnea import UNFUSED_CPU_OPTIONS  # as in make_dynamics
-
-    if (
-        jax.default_backend() != "cpu"
-        or dyn.backend != "rnea"
-        or compiler_accepts(**UNFUSED_CPU_OPTIONS)
-    ):
+    if _fusion_switch(dyn) is not False:
         return None
     return (
         f"note: jax {jax.__version__} cannot switch off XLA's CPU fusion emitters, so the "

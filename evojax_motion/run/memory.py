@@ -333,16 +333,21 @@ PREALLOCATE_ENV = "XLA_PYTHON_CLIENT_PREALLOCATE"
 
 
 def gpu_memory_on_demand(cfg: Config) -> bool:
-    """For a short training run (`model.dynamics.is_short_run`), have JAX take GPU memory as the
-    run needs it instead of reserving most of it at start (`PREALLOCATE_ENV` false), unless the
-    environment already says. Call before anything starts a JAX backend (it reads the variable
-    then); longer runs keep JAX's reservation, which their allocations reuse. Returns whether it
-    set the variable. No effect on CPU."""
+    """For a short training run (`model.dynamics.is_short_run`), `take_gpu_memory_on_demand`;
+    longer runs keep JAX's reservation, which their allocations reuse. Returns whether it set
+    the variable."""
     from evojax_motion.model.dynamics import is_short_run
 
+    short = is_short_run(cfg.evolution.generations, cfg.evolution.conditions)
+    return short and take_gpu_memory_on_demand()
+
+
+def take_gpu_memory_on_demand() -> bool:
+    """Have JAX take GPU memory as the process needs it instead of reserving most of it at start
+    (`PREALLOCATE_ENV` false), unless the environment already says. Call before anything starts
+    a JAX backend (it reads the variable then). Returns whether it set the variable. No effect
+    on CPU."""
     if PREALLOCATE_ENV in os.environ:
-        return False
-    if not is_short_run(cfg.evolution.generations, cfg.evolution.conditions):
         return False
     os.environ[PREALLOCATE_ENV] = "false"
     return True
