@@ -57,8 +57,12 @@ RESULTS = ROOT / "benchmarks" / "results"
 # Optimiser variants compared (name -> OptimSettings overrides); the default is "newton".
 VARIANTS: dict[str, dict | None] = {
     "shipped": None,  # the config's compiler settings
-    # the config's settings with 4 starts, 3 of them random at 0.3 rad RMS
+    # the config's settings with 4 (8, 16) starts, all but one random at 0.3 rad RMS
     "shipped-4starts": {"n_starts": 4, "start_scale": 0.3},
+    "shipped-8starts": {"n_starts": 8, "start_scale": 0.3},
+    "shipped-16starts": {"n_starts": 16, "start_scale": 0.3},
+    # 4 starts at the spread that was the default before 0.3
+    "shipped-4starts-wide": {"n_starts": 4, "start_scale": 1.0},
     "newton": {},
     # configs/catch_ball.yaml: eq. 5 integrated on every 4th sample, 2 free directions per joint
     "newton-s4f2": {"search_stride": 4, "max_free_per_joint": 2},

@@ -72,11 +72,9 @@ where the default took 82 s in that run. These figures predate the interpolation
 the paper config on the 300 problems of its generation 1 (``--variants shipped --conditions
 300``, ``results/optimality_cpu_shipped.json``, on the shipped demonstrations): median
 -0.0005 %, p95 1.27 %, max 4.3 %, 6.7 % above 1 %, none outside the joint limits or above the
-interpolation. The same with 4 starts
-(``n_starts: 4, start_scale: 0.3``, variant ``shipped-4starts``): median -0.005 %, p95
-0.031 %, 0.7 % above 1 %, 96.3 % within SLSQP's cost + 0.1 % (87.0 % with one start), at 2.5x
-the optimiser's time; the evolution's database cost after 10 generations is no lower with them
-(9.317 against 9.293; README.md).
+interpolation; 87.0 % within SLSQP's cost + 0.1 %. With 4, 8 and 16 starts (variants
+``shipped-4starts`` ...): p95 0.031, 0.018 and 0.017 %, 96.3, 98.7 and 99.3 % within, at 2.1,
+3.9 and 7.5x the optimiser's time on 2 CPU cores (1.2, 1.2 and 2.1x on one H200; README.md).
 
 Example::
 

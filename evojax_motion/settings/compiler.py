@@ -102,10 +102,11 @@ class OptimSettings:
       solution of all ``n_components``. Either way the result is the best, by the penalised
       objective on all T samples, of the optimiser's and its start.
     - ``n_starts``: starts per condition (1 = the start above only); ``start_scale``: spread of
-      the others [rad RMS of q]; ``seed``: the fixed key of those starts (deterministic). The
-      paper configuration with 4 starts at 0.3: p95 gap to float64 SLSQP 0.031 % instead of
-      1.27 %, 2.4x the time per generation on 2 CPU cores, and no lower database cost after 10
-      generations (README.md, `compiler.optimisation`).
+      the others [rad RMS of q] (default 0.3: at 1.0, 4 starts put 94.0 % of the paper problems
+      within float64 SLSQP's cost + 0.1 % instead of 96.3 %; CHANGELOG.md); ``seed``: the fixed
+      key of those starts (deterministic). More starts find better minima, at a time per
+      generation that grows with them on a CPU and little on a GPU (README.md,
+      `compiler.optimisation`).
     - ``max_free_per_joint``: free null-space directions kept per joint (static size of z: J times
       this). After both position BCs, K + 1 - 2 = 3 is all there can be; bases whose velocity BCs
       bind too have fewer (the synthetic demonstrations at T = 100: 1 on ~90 % of the joints, 2
@@ -146,7 +147,7 @@ class OptimSettings:
     hessian_every: int = 1
     interp_components: int = 3
     n_starts: int = 1
-    start_scale: float = 1.0
+    start_scale: float = 0.3
     seed: int = 0
     bc_leak: float = BC_LEAK
     max_batch: int | None = MAX_BATCH
