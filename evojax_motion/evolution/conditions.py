@@ -16,7 +16,9 @@ nearest
   start;
 - ``q0``: the neighbours' mean start posture (the synthetic demonstrations all start at the
   robot's rest; recorded people start where they stood), ``qd0 = qdf = 0``;
-- duration: the neighbours' mean duration, or ``EvolutionSettings.duration``.
+- duration: the neighbours' mean duration (each neighbour's as ``durations`` gives it: a run
+  passes them slowed to the robot's velocity limits, ``EvolutionSettings.fit_speed``), or
+  ``EvolutionSettings.duration``.
 
 Each condition also carries its human-only reference: the movement compiler via interpolation
 (eq. 1-2) on a basis of the human demonstrations alone. ``human_deviation_deg`` in the training
@@ -203,12 +205,14 @@ def make_conditions(
     key: jax.Array,
     cache_parts: Any = None,
     programs: ConditionPrograms | None = None,
+    durations: np.ndarray | None = None,
 ) -> Conditions:
     """Draw the m conditions of ``settings`` (``EvolutionSettings``) from human demonstrations.
 
     ``db``: the database; only its valid human rows are used. ``key``: the only randomness.
     ``cache_parts``: see `condition_programs`; ``programs``: those already made (and perhaps
-    compiled) for the same arguments, else made here.
+    compiled) for the same arguments, else made here. ``durations (N,)`` [s]: each row's
+    duration as a neighbour counts it (None: ``db.duration``).
     Raises ``UserError`` when fewer than m candidates qualify.
     """
     m = settings.conditions
@@ -255,7 +259,8 @@ def make_conditions(
         )
     chosen_nb, target = _take((nb, cand), np.concatenate(chosen)[:m])
     qf_m, ik_error_m = np.concatenate(qf)[:m], np.concatenate(ik_error)[:m]
-    return finish(target, chosen_nb, qf_m, ik_error_m, q, np.asarray(db.duration, q.dtype))
+    durations = db.duration if durations is None else durations
+    return finish(target, chosen_nb, qf_m, ik_error_m, q, np.asarray(durations, q.dtype))
 
 
 def conditions_to_tree(c: Conditions) -> dict:

@@ -2,7 +2,9 @@
 
 The evolution rejects offspring over any of them (`evolution.step.generation_stages`); human rows
 (demonstrations, imported motion) are data and stay in the database whatever they need, but a
-run reports how many are over a limit (`count_over_limits`, `over_limits_line`). A row is over a
+run reports how many are over a limit (`count_over_limits`, `over_limits_line`), and the
+conditions take their neighbours' durations slowed to the velocity limits
+(`slowed_to_velocity_limits`, ``evolution.fit_speed``). A row is over a
 limit where some sample leaves ``[lower, upper]`` (+`compiler.optimisation.LIMIT_TOL`), or its peak
 ``|qd|`` (``|tau|``, inverse dynamics on the time grid, as eq. 5's torques) over the T samples
 exceeds `model.robot.Robot.velocity_limit` (``torque_limit``). Infinite limits are never exceeded.
@@ -112,4 +114,29 @@ def over_limits_line(counts: OverLimits, what: str = "human rows") -> str:
     return (
         f"{what}: {counts.any} of {counts.rows} over a limit of the robot (joint range "
         f"{counts.joint}, velocity {counts.velocity}, torque {counts.torque}); kept as data"
+    )
+
+
+def slowed_to_velocity_limits(duration, peak_velocity, velocity_limit, headroom: float):
+    """Durations at which rows keep within the velocity limits: ``duration (n,)`` [s] times
+    ``max(1, max_j peak_velocity_j / ((1 - headroom) velocity_limit_j))``, i.e. each row slowed
+    uniformly in time (its speeds scale with ``1 / duration``) until its fastest joint is at the
+    usable limit; rows already within keep their duration exactly. ``peak_velocity (n, J)``
+    [rad/s], ``velocity_limit (J,)`` (inf: none). Returns ``(durations (n,), factors (n,))``."""
+    usable = (1.0 - headroom) * np.asarray(velocity_limit, np.float64)
+    ratio = np.asarray(peak_velocity, np.float64) / usable
+    factor = np.maximum(1.0, np.max(ratio, axis=1, initial=0.0))
+    return np.asarray(duration, np.float64) * factor, factor
+
+
+def slowed_line(factor, headroom: float) -> str | None:
+    """One line for a log on `slowed_to_velocity_limits`'s ``factors (n,)``: how many rows
+    were slowed and by how much; None when none was."""
+    slow = np.asarray(factor)[np.asarray(factor) > 1.0]
+    if slow.size == 0:
+        return None
+    return (
+        f"demonstrations: {slow.size} of {np.size(factor)} faster than the robot's velocity "
+        f"limits less {headroom:.0%}; the conditions count them slowed x{slow.min():.2f}"
+        f"-{slow.max():.2f} (median x{np.median(slow):.2f}; evolution.fit_speed)"
     )

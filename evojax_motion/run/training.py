@@ -204,6 +204,26 @@ def _numpy_db(db):
 # ---------------------------------------------------------------------------------- the run
 
 
+def neighbour_durations(cfg: Config, robot, duration, peak_velocity) -> np.ndarray | None:
+    """The demonstrations' durations ``(n,)`` [s] as the condition draw counts them
+    (`evolution.conditions.make_conditions`'s ``durations``): slowed to the robot's velocity
+    limits less ``compiler.limit_headroom`` with ``evolution.fit_speed`` (logged when any is),
+    None (the recorded ones) without it or with a fixed ``evolution.duration``.
+    ``peak_velocity (n, J)`` [rad/s]: each demonstration's peak joint speeds."""
+    from evojax_motion.motion.feasibility import slowed_line, slowed_to_velocity_limits
+
+    evo, headroom = cfg.evolution, cfg.compiler.limit_headroom
+    if not evo.fit_speed or evo.duration is not None:
+        return None
+    slowed, factor = slowed_to_velocity_limits(
+        duration, peak_velocity, robot.velocity_limit, headroom
+    )
+    line = slowed_line(factor, headroom)
+    if line is not None:
+        log(line)
+    return slowed
+
+
 def initial_state(
     cfg: Config, robot, dyn, setup: compilation.SetupPrograms | None = None, on_traced=None
 ):
@@ -258,10 +278,12 @@ def initial_state(
     humans = Database(*(np.delete(np.asarray(a), bad, axis=0) for a in humans))
     peaks = [np.delete(p, bad, axis=0) for p in (measured.peak_velocity, measured.peak_torque)]
     log(over_limits_line(count_over_limits(humans, robot, dyn, peaks=peaks)))
+    durations = neighbour_durations(cfg, robot, humans.duration, peaks[0])
     t1 = time.perf_counter()
     conditions = make_conditions(
-        humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, programs=setup.conditions
-    )
+        humans, dyn, robot, cfg.evolution, cfg.basis, grid, key, programs=setup.conditions,
+        durations=durations,
+    )  # fmt: skip
     conditions = jax.tree_util.tree_map(np.asarray, conditions)
     db = _numpy_db(init_evolved_slots(humans, conditions))
     conditions = with_search_candidates(db, conditions, cfg.basis)

@@ -22,6 +22,11 @@ class EvolutionSettings:
     - ``candidates_per_condition``: oversampling factor of that rejection sampling.
     - ``ik_tolerance`` [m]: a target whose human-like IK posture misses it by more is rejected.
     - ``duration`` [s]: duration of every condition's motion; ``null`` = its neighbours' mean.
+    - ``fit_speed``: with ``duration: null``, each neighbour counts with its duration slowed
+      uniformly until its joints keep within the robot's velocity limits less
+      ``compiler.limit_headroom`` (`motion.feasibility.slowed_to_velocity_limits`); people
+      move faster than many arms allow, and a condition at a human's duration leaves the
+      optimiser no motion the robot can execute (default true; false: recorded durations).
     - ``bc_tolerance`` [rad], ``bc_velocity_tolerance`` [rad/s]: offspring whose start/end joint
       angles (velocities) miss the boundary conditions by more are discarded. Velocities get a
       looser bound: the demonstrations start and end at rest, so the velocity rows of the BC
@@ -36,6 +41,7 @@ class EvolutionSettings:
     candidates_per_condition: int = 8
     ik_tolerance: float = 0.005
     duration: float | None = None
+    fit_speed: bool = True
     bc_tolerance: float = 1e-3
     bc_velocity_tolerance: float = 0.1
 
@@ -60,6 +66,9 @@ class EvolutionSettings:
             "duration",
             "null or a number > 0 [s]",
             self.duration,
+        )
+        check_setting(
+            isinstance(self.fit_speed, bool), "fit_speed", "true or false", self.fit_speed
         )
         check_setting(
             self.bc_tolerance > 0, "bc_tolerance", "a number > 0 [rad]", self.bc_tolerance

@@ -253,6 +253,28 @@ def test_conditions_are_reachable_human_like_and_rest_to_rest(small):
     np.testing.assert_allclose(cond.human_q[:, -1], b.qf, atol=TOL_BC_POS)
 
 
+@pytest.mark.slow
+def test_conditions_take_the_durations_they_are_given(small):
+    """``make_conditions(durations=...)``: each condition's duration is the mean of its
+    neighbours' durations as given (twice the recorded ones here: twice the conditions'), the
+    draw (targets, postures) and the human-only path in normalised time stay the same."""
+    import jax
+
+    from evojax_motion.evolution.conditions import make_conditions
+
+    robot, dyn, humans, grid = (small[k] for k in ("robot", "dyn", "humans", "grid"))
+    cond, evo, basis = small["cond"], small["evo"], small["basis"]
+    slow = make_conditions(
+        humans, dyn, robot, evo, basis, grid, jax.random.key(3), durations=2 * humans.duration
+    )
+    slow = jax.tree_util.tree_map(np.asarray, slow)
+    np.testing.assert_allclose(slow.boundary.duration, 2 * cond.boundary.duration, rtol=1e-6)
+    for name in ("q0", "qf", "qd0", "qdf"):
+        np.testing.assert_array_equal(getattr(slow.boundary, name), getattr(cond.boundary, name))
+    np.testing.assert_array_equal(slow.target, cond.target)
+    np.testing.assert_allclose(slow.human_q, cond.human_q, atol=TOL_BC_POS)
+
+
 # The IK of one candidate does not depend on which others share its batch (same program, rows
 # independent); a candidate's posture may still differ in the last bits between batch sizes.
 TOL_IK_BATCH = 1e-5  # [rad]

@@ -226,3 +226,63 @@ def test_tiny_run_keeps_evolved_rows_within_every_limit(tmp_path):
     assert np.all(ptau <= robot.torque_limit * (1 + REL_TOL)), ptau.max(axis=0)
     metrics = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     assert all("n_rejected_torque" in json.loads(x) for x in metrics)
+
+
+# Velocities scale exactly with 1 / duration; the derivative stencil and the division round in
+# float32 (a few ulps of the speeds recomputed here).
+SLOWED_REL_TOL = 1e-5
+
+
+def test_demonstrations_are_slowed_just_to_the_velocity_limits():
+    """`slowed_to_velocity_limits`: at the returned durations every row's joint speeds,
+    recomputed from its samples, keep within (1 - headroom) x limit; a slowed row has its
+    fastest joint at that bound (slowed no more than needed); a row within keeps its duration
+    bit for bit; a joint without a limit (inf) never slows a row."""
+    from evojax_motion.motion.feasibility import slowed_line, slowed_to_velocity_limits
+    from evojax_motion.motion.timegrid import derivatives, make_time_grid
+
+    rng = np.random.default_rng(3)
+    grid = make_time_grid(T_SAMPLES)
+    n, j, headroom = 12, 3, 0.05
+    s = np.asarray(grid.s, np.float64)[None, :, None]
+    q = (rng.normal(0, 1.0, (n, 1, j)) * (10 * s**3 - 15 * s**4 + 6 * s**5)).astype(np.float32)
+    q[:, :, 2] *= 50.0  # far too fast, but the joint has no limit
+    duration = rng.uniform(0.5, 1.5, n).astype(np.float32)
+    limit = np.array([1.0, 1.5, np.inf])
+
+    def speeds(d):
+        return np.abs(np.asarray(derivatives(grid, q, np.asarray(d, np.float32))[0])).max(axis=1)
+
+    slowed, factor = slowed_to_velocity_limits(duration, speeds(duration), limit, headroom)
+    usage = (speeds(slowed) / ((1 - headroom) * limit))[:, :2].max(axis=1)
+    was = factor > 1
+    assert was.any() and (~was).any()  # the draw has rows of both kinds
+    assert (usage <= 1 + SLOWED_REL_TOL).all()
+    np.testing.assert_allclose(usage[was], 1.0, rtol=SLOWED_REL_TOL)
+    np.testing.assert_array_equal(slowed[~was], duration[~was].astype(np.float64))
+    np.testing.assert_allclose(slowed / duration, factor, rtol=1e-12)
+    line = slowed_line(factor, headroom)
+    assert line is not None and line.startswith(f"demonstrations: {was.sum()} of {n} faster")
+    assert slowed_line(np.ones(n), headroom) is None
+
+
+def test_a_run_counts_its_demonstrations_slowed_unless_told_otherwise(capsys):
+    """`run.training.neighbour_durations`: the slowed durations with ``evolution.fit_speed``
+    (and one log line), the recorded ones (None) without it or with a fixed duration."""
+    from types import SimpleNamespace
+
+    from evojax_motion.run.training import neighbour_durations
+    from evojax_motion.settings import config_from_dict
+
+    cfg = config_from_dict({})
+    robot = SimpleNamespace(velocity_limit=np.array([1.0, 2.0]))  # all that is read of it
+    duration = np.array([1.0, 2.0])
+    peak = np.array([[2.0, 1.0], [0.5, 1.0]])  # row 0 twice too fast on joint 0
+    got = neighbour_durations(cfg, robot, duration, peak)
+    usable = 1 - cfg.compiler.limit_headroom
+    np.testing.assert_allclose(got, [2.0 / usable, 2.0])
+    assert "demonstrations: 1 of 2 faster" in capsys.readouterr().err
+    off = config_from_dict({}, ["evolution.fit_speed=false"])
+    fixed = config_from_dict({}, ["evolution.duration=1.5"])
+    assert neighbour_durations(off, robot, duration, peak) is None
+    assert neighbour_durations(fixed, robot, duration, peak) is None
