@@ -7,6 +7,7 @@ same demonstration database.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -177,14 +178,22 @@ def synthesises(cfg: Config, robot: Robot, dyn: Dynamics) -> bool:
 
 def read_demonstrations_file(cfg: Config, robot: Robot) -> tuple[Database, DatabaseMeta]:
     """``(db, meta)``: the valid human rows of ``cfg.demos_file``, a database of ``robot``'s
-    joints (`load_database`'s checks; `UserError` naming the file otherwise)."""
+    joints and end effector (`load_database`'s checks; `UserError` naming the file otherwise).
+    ``meta`` names ``robot`` (its MJCF, with the config's velocity limits): the run computes
+    with that model, and the databases it writes keep it for the queries that read them."""
     path = cfg.demos_file
     if path is None:
         raise ValueError("read_demonstrations_file: the config has no demos_file")
     db, meta = load_database(path)
     check_database_matches_robot(meta, robot, path)
+    if meta.site_name != robot.site_name:
+        raise UserError(
+            f"{path}: its hand positions are of end effector {meta.site_name!r}; the config's "
+            f"robot has {robot.site_name!r} (robot.end_effector): import the recordings for it"
+        )
     keep = human_mask(db)
-    return Database(*(np.asarray(a)[keep] for a in db)), meta
+    ours = dataclasses.replace(meta, robot_name=robot.name, mjcf=robot.mjcf)
+    return Database(*(np.asarray(a)[keep] for a in db)), ours
 
 
 def demonstrations(

@@ -169,6 +169,42 @@ def test_check_run_dir_refusals(tmp_path):
         check_run_dir(tmp_path / "junk" / "x", cfg, resume=False)
 
 
+def test_a_demonstrations_file_is_read_for_the_configs_robot(tmp_path):
+    """``demos_file`` recorded for the same arm without velocity limits, a config that gives
+    them: the demonstrations come with the config's model (the databases a run writes keep it,
+    and the queries on them check those limits); a file of another end effector is refused,
+    naming it."""
+    import dataclasses
+
+    from evojax_motion.model.robot import robot_from_mjcf_text
+    from evojax_motion.motion.database import DatabaseMeta, make_database, save_database
+    from evojax_motion.run.workflow import make_robot, read_demonstrations_file
+    from evojax_motion.settings import config_from_dict, config_to_dict, load_config
+
+    plain = make_robot(load_config(TINY))
+    rng = np.random.default_rng(0)
+    q = plain.rest + rng.normal(0, 0.01, (4, 8, plain.n_joints))
+    db = make_database(q, np.ones(4), rng.normal(0, 0.1, (4, 3)), cost=np.ones(4))
+    meta = DatabaseMeta.of_robot(plain, synthetic=False, description="recorded")
+    save_database(tmp_path / "demos.npz", db, meta)
+    limits = {name: 0.5 + i for i, name in enumerate(plain.joint_names)}
+    sets = [f"demos_file={tmp_path / 'demos.npz'}", f"robot.velocity_limits={limits}"]
+    cfg = config_from_dict(config_to_dict(load_config(TINY)), sets)
+    robot = make_robot(cfg)
+    got, got_meta = read_demonstrations_file(cfg, robot)
+    np.testing.assert_array_equal(got.q, db.q)
+    assert got_meta.mjcf == robot.mjcf and got_meta.description == "recorded"
+    again = robot_from_mjcf_text(
+        got_meta.robot_name, got_meta.mjcf, got_meta.joint_names, got_meta.site_name
+    )
+    np.testing.assert_allclose(again.velocity_limit, list(limits.values()))
+
+    other = dataclasses.replace(meta, site_name="elsewhere")
+    save_database(tmp_path / "demos.npz", db, other)
+    with pytest.raises(UserError, match=r"demos\.npz: its hand positions are of end effector"):
+        read_demonstrations_file(cfg, robot)
+
+
 def test_compile_wait_counts_the_early_compile_still_running():
     """``compile_seconds`` of a run's summary counts the wait for the step compiled in the
     background (`run.compilation.wait_for_step`): a compile that ends 0.3 s after the
