@@ -552,6 +552,9 @@ def _run_training(cfg: Config, out: Path, resume: bool, progress: bool) -> dict:
         bar.close()
         manager.close()
 
+    told = rejections_line(metrics[-1], evo.conditions) if metrics and primary else None
+    if told is not None:
+        log(told)
     plot_paths = []
     if primary:
         save_database(out / DB_FINAL, db, meta)
@@ -612,6 +615,46 @@ def _write_plots(out, cfg, robot, db, conditions, metrics, baseline) -> list[str
 def _meta(metrics: list[dict], baseline: dict) -> dict:
     """JSON beside a checkpoint's arrays: the metrics so far and the human-only baseline."""
     return {"metrics": metrics, "baseline": baseline}
+
+
+# metrics.jsonl's rejection counts: what each names, and what gives the robot such motions
+_REJECTIONS = {
+    "n_rejected_velocity": (
+        "velocity limit",
+        "longer durations help (evolution.fit_speed, evolution.duration)",
+    ),
+    "n_rejected_torque": (
+        "torque limit",
+        "longer durations lower the torques (evolution.duration)",
+    ),
+    "n_rejected_limits": (
+        "joint range",
+        "conditions near a range's end are hard to reach (evolution.region_margin)",
+    ),
+    "n_rejected_bc": (
+        "boundary conditions",
+        "see evolution.bc_tolerance and bc_velocity_tolerance",
+    ),
+    "n_rejected_nonfinite": ("not finite", "a numerical failure of the optimiser"),
+}
+REJECTED_WARN_FRACTION = 0.25  # a generation discarding this share of its offspring is told
+
+
+def rejections_line(row: dict, conditions: int) -> str | None:
+    """A warning on one ``metrics.jsonl`` row when its generation discarded at least
+    `REJECTED_WARN_FRACTION` of its ``conditions`` offspring: how many, for what, and what helps
+    against the most common reason; None otherwise."""
+    counts = {k: int(row.get(k) or 0) for k in _REJECTIONS}
+    total = sum(counts.values())
+    if conditions <= 0 or total < REJECTED_WARN_FRACTION * conditions:
+        return None
+    parts = ", ".join(f"{_REJECTIONS[k][0]} {n}" for k, n in counts.items() if n)
+    top = max(counts, key=lambda k: counts[k])
+    return (
+        f"warning: generation {row.get('generation')} discarded {total} of {conditions} "
+        f"offspring ({parts}; metrics.jsonl n_rejected_*): "
+        f"{_REJECTIONS[top][1]}"
+    )
 
 
 def _summary(out: Path, metrics: list[dict], baseline: dict, timings: dict, plots) -> dict:

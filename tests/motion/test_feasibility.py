@@ -286,3 +286,21 @@ def test_a_run_counts_its_demonstrations_slowed_unless_told_otherwise(capsys):
     fixed = config_from_dict({}, ["evolution.duration=1.5"])
     assert neighbour_durations(off, robot, duration, peak) is None
     assert neighbour_durations(fixed, robot, duration, peak) is None
+
+
+def test_a_run_says_when_a_generation_discards_many_offspring():
+    """`run.training.rejections_line`: from a quarter of the conditions on, one warning with
+    each reason's count and the hint of the most common one; below it, nothing."""
+    from evojax_motion.run.training import rejections_line
+
+    row = {"generation": 10, "n_rejected_velocity": 36, "n_rejected_torque": 1,
+           "n_rejected_bc": 1, "n_rejected_limits": 0, "n_rejected_nonfinite": 0}  # fmt: skip
+    line = rejections_line(row, 40)
+    assert line is not None
+    assert line.startswith("warning: generation 10 discarded 38 of 40 offspring (velocity limit")
+    assert "torque limit 1, boundary conditions 1;" in line and "joint range" not in line
+    assert line.endswith("(evolution.fit_speed, evolution.duration)")
+    assert rejections_line({**row, "n_rejected_velocity": 7}, 40) is None  # 9 < 10
+    assert rejections_line({**row, "n_rejected_velocity": 8}, 40) is not None  # 10 of 40
+    only_range = {"generation": 2, "n_rejected_limits": 5}
+    assert "(evolution.region_margin)" in rejections_line(only_range, 8)
