@@ -21,6 +21,14 @@ reach them). Degenerate is common: primitives that all start and end at rest hav
 nearly vanishing end velocities, so the two velocity rows carry little more than finite-difference
 noise (O(h^4), see ``timegrid``) and are dropped rather than fitted with huge coefficients.
 
+Outside the demonstrations. Where a condition's end posture lies beyond its neighbours' ends
+and they hardly vary there (a few trials of one person that start alike and end in a cluster),
+meeting the BCs exactly takes weights of hundreds of prior standard deviations and the path
+overshoots by several times the joint's move. A joint whose weights exceed `MAX_PRIOR_SIGMA`
+follows its neighbours' mean motion instead, moved onto the BCs by quintic offsets
+(`mean_onto_boundary`; ``Interpolated.mean_path`` says which). The paper configuration never
+comes near the threshold, so its results are eq. 1-2's.
+
 The same algebra yields the null space: ``x = x_ls + N z`` meets the BCs for every z, so the
 optimisation compiler moves in z (static shapes: N always has K columns, masked by ``null_mask``;
 the constant's column makes the rank at least 1). For it, which BC directions bind is decided in
@@ -48,6 +56,7 @@ from evojax_motion.compiler.basis import Basis, jacobi_backend, small_right_svd,
 from evojax_motion.errors import UserError
 from evojax_motion.linalg import lapack
 from evojax_motion.linalg.jacobi import gram_svd
+from evojax_motion.motion import profiles
 from evojax_motion.motion.timegrid import TimeGrid
 
 # Singular values of the scaled BC matrix below RANK_RTOL * (largest) count as zero (interpolation
@@ -74,6 +83,13 @@ GRAM_SVD_MIN_MATRICES = 65_536
 # Floor of the constant's prior scale [rad], so that a joint no neighbour moves keeps a usable
 # constant (its column would otherwise be zero and no BC could be met).
 MIN_CONSTANT_SCALE = 1e-3
+# A joint whose eq. 1-2 coefficients lie beyond this many prior standard deviations
+# (`coefficient_scale`) has left what its demonstrations span: it follows their mean motion
+# moved onto its BCs instead (`mean_onto_boundary`). The paper configuration's 300 conditions
+# reach 7.9 at most (median 0.27, 99th percentile 4.8); recorded reaches, whose few trials of
+# one person end alike and not quite at rest, reach hundreds to thousands, with paths spanning
+# up to 15 times the joint's move (CHANGELOG.md).
+MAX_PRIOR_SIGMA = 10.0
 
 
 class Boundary(NamedTuple):
@@ -112,15 +128,18 @@ class BCSolution(NamedTuple):
 class Interpolated(NamedTuple):
     """Result of `compile_interpolation` for C conditions.
 
-    q: (C, T, J) [rad]; coeffs: (C, J, K+1) weights of the K components and the constant;
-    bc_residual: (C,) max over joints of the BC errors of q (|q| in rad, |qd| in rad/s);
-    rank: (C, J) numerical rank of each joint's BC system (4 = fully determined with K >= 3).
+    q: (C, T, J) [rad]; coeffs: (C, J, K+1) eq. 1's weights of the K components and the
+    constant; bc_residual: (C,) max over joints of the BC errors of q (|q| in rad, |qd| in
+    rad/s); rank: (C, J) numerical rank of each joint's BC system (4 = fully determined with
+    K >= 3); mean_path: (C, J) the joint's eq. 1 weights were beyond `MAX_PRIOR_SIGMA` (or not
+    finite) and its q is `mean_onto_boundary`'s instead.
     """
 
     q: jnp.ndarray
     coeffs: jnp.ndarray
     bc_residual: jnp.ndarray
     rank: jnp.ndarray
+    mean_path: jnp.ndarray
 
 
 def basis_functions(basis: Basis, n_components: int) -> jnp.ndarray:
@@ -199,6 +218,23 @@ def end_slopes(d1_ends, f):
     )
 
 
+def _bc_rows(d1_ends, f):
+    """The four BC rows (start and end value, start and end slope per unit of normalised time)
+    of functions ``f (n, T)``: ``(4, n)``."""
+    return jnp.concatenate([jnp.stack([f[:, 0], f[:, -1]]), end_slopes(d1_ends, f)])
+
+
+def _bc_gap(d1_ends, mean, q0, qf, qd0, qdf, duration):
+    """``(4,)``: what one joint's BCs ask beyond its mean trajectory ``mean (T,)``, in the units
+    of `_bc_rows` (slopes times the duration)."""
+    return jnp.concatenate(
+        [
+            jnp.stack([q0 - mean[0], qf - mean[-1]]),
+            duration * jnp.stack([qd0, qdf]) - end_slopes(d1_ends, mean),
+        ]
+    )
+
+
 def _joint_system(
     funcs, mean, scale, q0, qf, qd0, qdf, duration, d1_ends, rank_rtol, leak, jacobi=False,
     two_pass_gram=False,
@@ -213,13 +249,8 @@ def _joint_system(
     (K+1,)``, ``null (K+1, K)``, ``null_mask (K,)``, ``rank ()``.
     """
     n, t = funcs.shape
-    rows = jnp.concatenate([jnp.stack([funcs[:, 0], funcs[:, -1]]), end_slopes(d1_ends, funcs)])
-    b = jnp.concatenate(
-        [
-            jnp.stack([q0 - mean[0], qf - mean[-1]]),
-            duration * jnp.stack([qd0, qdf]) - end_slopes(d1_ends, mean),
-        ]
-    )
+    rows = _bc_rows(d1_ends, funcs)
+    b = _bc_gap(d1_ends, mean, q0, qf, qd0, qdf, duration)
     a = rows * scale[None, :]  # (4, K+1) in prior units
     if leak is None:
         # Positions first, then velocities in what freedom is left (a prioritised minimum-norm
@@ -341,13 +372,57 @@ def compile_interpolation(
     ``jax.jit(lambda b, bc: compile_interpolation(b, bc, grid))``. No optimisation: real time.
     """
     sol = solve_boundary(basis, boundary, grid, n_components, rank_rtol)
-    q = trajectory(basis, sol.coeffs)
+    far = outside_prior(basis, sol.coeffs)
+    q = jnp.where(
+        far[:, None, :], mean_onto_boundary(basis, boundary, grid), trajectory(basis, sol.coeffs)
+    )
     return Interpolated(
         q=q,
         coeffs=sol.coeffs,
         bc_residual=boundary_residual(grid, q, boundary),
         rank=sol.rank,
+        mean_path=far,
     )
+
+
+def outside_prior(basis: Basis, coeffs: jnp.ndarray) -> jnp.ndarray:
+    """``(C, J)``: a joint's weights ``coeffs (C, J, K+1)`` are beyond `MAX_PRIOR_SIGMA` prior
+    standard deviations (`coefficient_scale`; an unknown of scale 0 counts by its weight's being
+    nonzero), or not finite."""
+    scale = coefficient_scale(basis, coeffs.shape[2] - 1)
+    size = jnp.abs(coeffs) / jnp.where(scale > 0, scale, 1.0)
+    size = jnp.where((scale > 0) | (coeffs != 0), size, 0.0)
+    return ~(jnp.max(size, axis=2) <= MAX_PRIOR_SIGMA)  # NaN: outside
+
+
+def mean_onto_boundary(basis: Basis, boundary: Boundary, grid: TimeGrid) -> jnp.ndarray:
+    """The basis' mean motion moved onto the BCs: ``(C, T, J)``.
+
+    ``q = mean + sum_e c_e h_e`` with ``h`` the quintic offsets of
+    `motion.profiles.quintic_hermite` (each sets one end value or slope, zero acceleration at
+    both ends), ``c`` solved on the grid's own BC rows (end samples, `end_slopes`), so the BCs
+    hold as exactly as eq. 1-2's. The demonstrations' shape, without weights beyond their
+    spread (`MAX_PRIOR_SIGMA`).
+    """
+    s = np.asarray(grid.s, np.float64)
+    h = np.stack(profiles.quintic_hermite(s))  # (4, T)
+    d1 = np.asarray(grid.d1, np.float64)[[0, -1]]
+    rows = np.concatenate([h[:, [0, -1]].T, (h @ d1.T).T])  # (4 rows, 4 offsets)
+    dtype = basis.mean.dtype
+    solve = jnp.asarray(np.linalg.inv(rows), dtype)
+    offsets, d1_ends = jnp.asarray(h, dtype), jnp.asarray(d1, dtype)
+
+    def joint(mean, q0, qf, qd0, qdf, duration):  # mean (T,) -> (T,)
+        c = solve @ _bc_gap(d1_ends, mean, q0, qf, qd0, qdf, duration)
+        return mean + c @ offsets
+
+    mean = jnp.swapaxes(basis.mean, 1, 2)  # (C, J, T)
+    dur = jnp.broadcast_to(boundary.duration.astype(dtype)[:, None], boundary.q0.shape)
+    q0, qf, qd0, qdf = (
+        a.astype(dtype) for a in (boundary.q0, boundary.qf, boundary.qd0, boundary.qdf)
+    )
+    q = jax.vmap(jax.vmap(joint))(mean, q0, qf, qd0, qdf, dur)
+    return jnp.swapaxes(q, 1, 2)
 
 
 def validate_boundary(

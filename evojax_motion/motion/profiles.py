@@ -13,6 +13,20 @@ def minimum_jerk(w):
     return w**3 * (10.0 - 15.0 * w + 6.0 * w**2)
 
 
+def quintic_hermite(w):
+    """The four quintic polynomials on [0, 1] that each set one boundary value and leave the
+    others zero, with zero acceleration at both ends: a tuple (value 1 at the start, ``1 -
+    minimum_jerk``; value 1 at the end, `minimum_jerk`; slope 1 at the start; slope 1 at the
+    end; slopes per unit of ``w``), each shaped as ``w`` (NumPy in, NumPy out)."""
+    end = minimum_jerk(w)
+    return (
+        1.0 - end,
+        end,
+        w * (1.0 + w**2 * (-6.0 + w * (8.0 - 3.0 * w))),
+        w**3 * (-4.0 + w * (7.0 - 3.0 * w)),
+    )
+
+
 def plateau(w, ramp: float):
     """A speed plateau: the speed rises as ``3x^2 - 2x^3`` (x = w / ramp: zero acceleration at
     the start, continuous acceleration) over the first ``ramp`` of the time, holds ``1 / (1 -

@@ -9,12 +9,14 @@ from hypothesis import strategies as st
 
 from evojax_motion.compiler.basis import Basis, pca_basis, select_neighbours
 from evojax_motion.compiler.interpolation import (
+    MAX_PRIOR_SIGMA,
     RANK_RTOL,
     STRICT_RANK_RTOL,
     Boundary,
     basis_functions,
     coefficient_scale,
     compile_interpolation,
+    trajectory,
     validate_boundary,
 )
 from evojax_motion.errors import UserError
@@ -268,3 +270,72 @@ def test_bc_solve_gives_the_same_problems_past_the_gram_switch(grid, monkeypatch
         pa = np.einsum("cjik,cjlk->cjil", a, np.linalg.pinv(a).swapaxes(-1, -2))
         pb = np.einsum("cjik,cjlk->cjil", b, np.linalg.pinv(b).swapaxes(-1, -2))
         np.testing.assert_allclose(pa, pb, atol=TOL_GRAM_SWITCH)
+
+
+def test_quintic_offsets_set_one_boundary_value_each():
+    """`motion.profiles.quintic_hermite`: each of the four offsets has one end value or slope 1
+    and the other three 0, and zero acceleration at both ends (float64 derivatives by jax)."""
+    from evojax_motion.motion.profiles import quintic_hermite
+
+    with jax.enable_x64(True):
+        f = lambda w: jnp.stack(quintic_hermite(w))  # noqa: E731
+        ends = jnp.array([0.0, 1.0], jnp.float64)
+        val = np.asarray(jax.vmap(f)(ends))  # (2 ends, 4 offsets)
+        slope = np.asarray(jax.vmap(jax.jacfwd(f))(ends))
+        acc = np.asarray(jax.vmap(jax.jacfwd(jax.jacfwd(f)))(ends))
+    np.testing.assert_allclose(np.concatenate([val, slope]), np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(acc, 0.0, atol=1e-12)
+
+
+TOL_MEAN_PATH = 1e-5  # rad: float32 path against its float64 reference (sizes ~1 rad)
+# rad/s: its BCs in float32, the end velocities being ~1 rad samples through the one-sided end
+# stencil (~50 / D at T = 24): at most 1.1e-5 measured by default and with AVX2, 1.4e-5 with SSE4.2
+TOL_BC_MEAN_PATH = 3e-5
+
+
+def test_a_joint_beyond_its_demonstrations_follows_their_mean_motion(compiled, grid):
+    """Demonstrations that hardly vary (prior variance 1e-6: a few trials of one person) and
+    BCs well away from their ends: eq. 1-2 would need weights of thousands of standard
+    deviations. Those joints follow the basis' mean motion moved onto the BCs by quintic
+    offsets, checked against a float64 reference (the offsets written out here, solved on the
+    grid's own BC rows); the BCs hold. Joints of an ordinary basis keep eq. 1 exactly."""
+    rng = np.random.default_rng(4)
+    basis = random_basis(rng, C, T, J, K)
+    d1 = np.asarray(grid.d1, np.float64)[[0, -1]]
+    mean = np.asarray(basis.mean, np.float64)  # (C, T, J)
+    dur = 0.8
+    own = [mean[:, 0], mean[:, -1], *np.einsum("et,ctj->ecj", d1, mean) / dur]  # its own BCs
+    near = Boundary(  # the end postures 0.02 rad off the mean's
+        *(jnp.asarray(a + rng.normal(0, 0.02, a.shape) * (i < 2), jnp.float32)
+          for i, a in enumerate(own)),
+        duration=jnp.full(C, dur, jnp.float32),
+    )  # fmt: skip
+    out = compiled(basis, near)
+    assert not np.asarray(out.mean_path).any()
+    np.testing.assert_array_equal(out.q, trajectory(basis, out.coeffs))
+
+    bc = Boundary(
+        *(jnp.asarray(rng.uniform(-1, 1, (C, J)) * sc, jnp.float32) for sc in (0.5, 0.5, 0.0, 0.0)),
+        duration=jnp.full(C, dur, jnp.float32),
+    )  # fmt: skip
+    tight = basis._replace(variance=jnp.full_like(basis.variance, 1e-6))
+    out = compiled(tight, bc)
+    size = np.abs(np.asarray(out.coeffs)) / np.asarray(coefficient_scale(tight, K))
+    far = size.max(axis=2) > MAX_PRIOR_SIGMA
+    assert far.all()  # the case is meant: every joint left its demonstrations
+    np.testing.assert_array_equal(out.mean_path, far)
+    s = np.linspace(0.0, 1.0, T)
+    offsets = np.stack(
+        [1 - 10 * s**3 + 15 * s**4 - 6 * s**5, 10 * s**3 - 15 * s**4 + 6 * s**5,
+         s - 6 * s**3 + 8 * s**4 - 3 * s**5, -4 * s**3 + 7 * s**4 - 3 * s**5]
+    )  # fmt: skip
+    rows = np.concatenate([offsets[:, [0, -1]].T, d1 @ offsets.T])
+    gap = np.stack(
+        [np.asarray(bc.q0) - mean[:, 0], np.asarray(bc.qf) - mean[:, -1],
+         dur * np.asarray(bc.qd0) - np.einsum("t,ctj->cj", d1[0], mean),
+         dur * np.asarray(bc.qdf) - np.einsum("t,ctj->cj", d1[1], mean)]
+    )  # fmt: skip  # (4, C, J)
+    expect = mean + np.einsum("ecj,et->ctj", np.linalg.solve(rows, gap.reshape(4, -1)).reshape(
+        gap.shape), offsets)  # fmt: skip
+    np.testing.assert_allclose(out.q, expect, atol=TOL_MEAN_PATH)
+    assert (np.asarray(out.bc_residual) <= TOL_BC_MEAN_PATH).all()
