@@ -88,7 +88,7 @@ MIN_CONSTANT_SCALE = 1e-3
 # moved onto its BCs instead (`mean_onto_boundary`). The paper configuration's 300 conditions
 # reach 7.9 at most (median 0.27, 99th percentile 4.8); recorded reaches, whose few trials of
 # one person end alike and not quite at rest, reach hundreds to thousands, with paths spanning
-# up to 15 times the joint's move (CHANGELOG.md).
+# up to 31 times the joint's move (CHANGELOG.md).
 MAX_PRIOR_SIGMA = 10.0
 
 

@@ -617,7 +617,7 @@ def _meta(metrics: list[dict], baseline: dict) -> dict:
     return {"metrics": metrics, "baseline": baseline}
 
 
-# metrics.jsonl's rejection counts: what each names, and what gives the robot such motions
+# metrics.jsonl's rejection counts: the reason each names, and what helps against it
 _REJECTIONS = {
     "n_rejected_velocity": (
         "velocity limit",
