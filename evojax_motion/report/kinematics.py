@@ -72,11 +72,19 @@ def full_qpos(robot: Robot, q: np.ndarray) -> np.ndarray:
     return qpos
 
 
+# Geom groups MuJoCo's viewer shows by default (``mjVisual``'s geomgroup 0-2); published models
+# keep their collision geoms in group 3, duplicates of the visual ones.
+SHOWN_GROUPS = 3
+
+
 def segments(robot: Robot, q) -> Segments:
     """Forward kinematics (``mj_kinematics``, no GL) of ``q (F, J)`` [rad] as geom segments.
 
     Capsules and cylinders: their axis; boxes and ellipsoids: their longest axis; spheres: a
-    point. Planes, meshes and height fields are left out (a stick figure has no use for them).
+    point; meshes (published models are made of them): the longest axis of their bounding box
+    (``geom_aabb``), as a box. Only geoms of the groups MuJoCo shows by default
+    (`SHOWN_GROUPS`); planes and height fields are left out (a stick figure has no use for them).
+    A model without any such geom is drawn as its bodies' chain (`body_chain`).
     """
     q = np.atleast_2d(np.asarray(q, np.float64))
     m = robot.mj_model
@@ -85,37 +93,72 @@ def segments(robot: Robot, q) -> Segments:
     kept: list[int] = []
     axis: list[int] = []
     half: list[float] = []
+    radius: list[float] = []
+    centre: list[np.ndarray] = []  # [m] in the geom's frame: a mesh's box is off its origin
     for i in range(m.ngeom):
         t, size = int(m.geom_type[i]), m.geom_size[i]
+        offset = np.zeros(3)
+        if m.geom_group[i] >= SHOWN_GROUPS:
+            continue
         if t in (int(g.mjGEOM_CAPSULE), int(g.mjGEOM_CYLINDER)):
-            k, length = 2, float(size[1])
+            k, length, r = 2, float(size[1]), float(size[0])
         elif t in (int(g.mjGEOM_BOX), int(g.mjGEOM_ELLIPSOID)):
             k = int(np.argmax(size))
             length = float(size[k])
+            r = float(min(size)) if t == int(g.mjGEOM_BOX) else float(size[0])
         elif t == int(g.mjGEOM_SPHERE):
-            k, length = 2, 0.0
+            k, length, r = 2, 0.0, float(size[0])
+        elif t == int(g.mjGEOM_MESH):
+            offset, box = np.asarray(m.geom_aabb[i][:3]), np.asarray(m.geom_aabb[i][3:])
+            k = int(np.argmax(box))
+            length, r = float(box[k]), float(min(box))
         else:
             continue
         kept.append(i)
         axis.append(k)
         half.append(length)
+        radius.append(r)
+        centre.append(offset)
+    if not kept:
+        return body_chain(robot, q)
     idx = np.asarray(kept, int)
-    radius = np.array(
-        [
-            m.geom_size[i][0] if int(m.geom_type[i]) != int(g.mjGEOM_BOX) else min(m.geom_size[i])
-            for i in kept
-        ]
-    )
     a = np.zeros((q.shape[0], idx.size, 3))
+    b = np.zeros_like(a)
+    local = np.asarray(centre).reshape(-1, 3)
+    for f, qpos in enumerate(full_qpos(robot, q)):
+        d.qpos[:] = qpos
+        mujoco.mj_kinematics(m, d)
+        mat = d.geom_xmat[idx].reshape(-1, 3, 3)
+        pos = d.geom_xpos[idx] + np.einsum("gij,gj->gi", mat, local)
+        direction = mat[np.arange(idx.size), :, np.asarray(axis, int)] * np.asarray(half)[:, None]
+        a[f], b[f] = pos - direction, pos + direction
+    return Segments(
+        a=a, b=b, radius=np.asarray(radius, float), rgba=np.asarray(m.geom_rgba[idx], float)
+    )
+
+
+CHAIN_RADIUS = 0.02  # [m] of `body_chain`'s segments
+CHAIN_RGBA = (0.6, 0.6, 0.65, 1.0)
+
+
+def body_chain(robot: Robot, q) -> Segments:
+    """A model's bodies as a stick figure for ``q (F, J)``: a segment from each body's parent's
+    origin to its own, and one from the end effector's body to its site; `CHAIN_RADIUS`."""
+    q = np.atleast_2d(np.asarray(q, np.float64))
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    child = np.arange(1, m.nbody)
+    parent = m.body_parentid[child]
+    site_body = int(m.site_bodyid[robot.site_id])
+    a = np.zeros((q.shape[0], child.size + 1, 3))
     b = np.zeros_like(a)
     for f, qpos in enumerate(full_qpos(robot, q)):
         d.qpos[:] = qpos
         mujoco.mj_kinematics(m, d)
-        pos = d.geom_xpos[idx]
-        mat = d.geom_xmat[idx].reshape(-1, 3, 3)
-        direction = mat[np.arange(idx.size), :, np.asarray(axis, int)] * np.asarray(half)[:, None]
-        a[f], b[f] = pos - direction, pos + direction
-    return Segments(a=a, b=b, radius=radius, rgba=np.asarray(m.geom_rgba[idx], float))
+        a[f, :-1], b[f, :-1] = d.xpos[parent], d.xpos[child]
+        a[f, -1], b[f, -1] = d.xpos[site_body], d.site_xpos[robot.site_id]
+    n = child.size + 1
+    return Segments(a=a, b=b, radius=np.full(n, CHAIN_RADIUS), rgba=np.tile(CHAIN_RGBA, (n, 1)))
 
 
 def site_positions(robot: Robot, q) -> np.ndarray:

@@ -241,6 +241,59 @@ def test_fit_camera_keeps_every_geom_in_the_picture(reach):
     assert max((u.max() - u.min()) / w, (v.max() - v.min()) / h) > 0.75
 
 
+ASSETS = Path(__file__).resolve().parents[1] / "assets"
+TOL_MESH_M = 1e-6  # [m] a mesh box's segment against its vertices (MuJoCo keeps them in float32)
+
+
+def _body_frames(robot, q):
+    """``(xpos (F, nbody, 3), xmat (F, nbody, 3, 3))`` by MuJoCo's forward kinematics."""
+    import mujoco
+
+    m, d = robot.mj_model, mujoco.MjData(robot.mj_model)
+    out = []
+    for qpos in kin.full_qpos(robot, q):
+        d.qpos[:] = qpos
+        mujoco.mj_kinematics(m, d)
+        out.append((d.xpos.copy(), d.xmat.reshape(-1, 3, 3).copy()))
+    return np.stack([x for x, _ in out]), np.stack([r for _, r in out])
+
+
+def test_a_robot_made_of_meshes_is_drawn_from_their_boxes():
+    """Published arms are meshes only, each also as a hidden collision geom (group 3): one
+    segment per visible mesh, along the longest axis of its box through the box's centre, as
+    the vertices written in the model give it in the body's frame; radius its smallest half
+    extent. A model without any drawable geom is its bodies' chain; a report's floor and camera
+    come out finite for both."""
+    robot = load_robot(ASSETS / "mesh_arm.xml")
+    q = np.array([[0.0, 0.0], [0.7, -1.1], [-1.5, 0.4]])
+    seg = kin.segments(robot, q)
+    assert seg.a.shape == (3, 2, 3)
+    np.testing.assert_allclose(seg.radius, [0.04, 0.02])
+    xpos, xmat = _body_frames(robot, q)
+    # the centres of each box's two end faces, in its body's frame (see the model's vertices)
+    ends = {1: ([0.01, 0.0, 0.02], [0.01, 0.0, 0.32]), 2: ([0.0, 0.0, 0.0], [0.25, 0.0, 0.0])}
+    for g, body in enumerate((1, 2)):
+        p0, p1 = (xpos[:, body] + np.einsum("fij,j->fi", xmat[:, body], e) for e in ends[body])
+        got = np.stack([seg.a[:, g], seg.b[:, g]], axis=1)
+        straight = np.abs(got - np.stack([p0, p1], axis=1)).max()
+        turned = np.abs(got - np.stack([p1, p0], axis=1)).max()
+        assert min(straight, turned) <= TOL_MESH_M
+    for r in (robot, load_robot(ASSETS / "continuous_arm.xml")):
+        pose = np.zeros((2, r.n_joints))
+        assert np.isfinite(kin.floor_height(r, [pose]))
+        cam = kin.fit_camera(r, [pose], kin.VIEWS["three_quarter"])
+        assert np.isfinite(cam.distance) and cam.distance > 0
+
+    bare = load_robot(ASSETS / "continuous_arm.xml")  # inertials and a site, no geom
+    pose = np.array([[0.3, -0.4, 0.2, 0.05]])
+    chain = kin.segments(bare, pose)
+    xpos, _ = _body_frames(bare, pose)
+    m = bare.mj_model
+    np.testing.assert_allclose(chain.b[0, :-1], xpos[0, 1:])
+    np.testing.assert_allclose(chain.a[0, :-1], xpos[0, m.body_parentid[1:]])
+    np.testing.assert_allclose(chain.b[0, -1], kin.site_positions(bare, pose)[0])
+
+
 def test_catch_frames_timeline(reach):
     """Arm at rest until the motion starts, then on it, then held; ball on its flight until the
     catch, then at the hand."""
