@@ -91,6 +91,10 @@ def test_demos_and_train_with_only_the_model_file(tmp_path, name, capsys):
     _inside_limits(robot, np.asarray(final.q)[np.asarray(final.valid)])
     summary = json.loads((run / "summary.json").read_text())
     assert summary["human_only_cost_mean"] <= HUMAN_ONLY_COST_RATIO * summary["db_cost_gen1"]
+    # its report, drawn from the model's meshes (stick figures: no OpenGL needed)
+    report = ["report", str(run), "--renderer", "stick", "--snapshots", "2", "--gif-frames", "2"]
+    assert main(report) == 0, capsys.readouterr().err
+    assert (run / "report" / "report.html").is_file()
 
 
 def test_the_xarm7_with_its_gripper_gets_a_region_in_front_of_it():
