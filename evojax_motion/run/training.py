@@ -625,7 +625,7 @@ _REJECTIONS = {
     ),
     "n_rejected_torque": (
         "torque limit",
-        "longer durations lower the torques (evolution.duration)",
+        "slower motions (evolution.duration) lower the dynamic torques, not gravity's",
     ),
     "n_rejected_limits": (
         "joint range",
