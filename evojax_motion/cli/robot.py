@@ -121,6 +121,39 @@ def _workspace_lines(robot) -> list[str]:
     return lines
 
 
+OTHER_JOINTS_SHOWN = 8  # uncontrolled joints named by `_other_joints_lines`, then a count
+
+
+def _other_joints_lines(robot) -> list[str]:
+    """A line naming the model's joints that are not controlled (held at ``qpos0``, at rest, in
+    every motion and its dynamics), with a note where one is a free joint; none if there are
+    none."""
+    import mujoco
+
+    m = robot.mj_model
+    kinds = {
+        int(v): v.name.removeprefix("mjJNT_").lower() for v in mujoco.mjtJoint.__members__.values()
+    }
+    controlled = {int(j) for j in robot.joint_ids}
+    others = [j for j in range(m.njnt) if j not in controlled]
+    if not others:
+        return []
+
+    def named(j: int) -> str:
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f"#{j}"
+        return f"{name} ({kinds[int(m.jnt_type[j])]})"
+
+    names = [named(j) for j in others]
+    shown = ", ".join(names[:OTHER_JOINTS_SHOWN])
+    more = f", ... ({len(names)} in all)" if len(names) > OTHER_JOINTS_SHOWN else ""
+    lines = [f"other joints, held at the model's qpos0 in every motion: {shown}{more}"]
+    if any(int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE) for j in others):
+        lines.append(
+            "  (a free joint among them: the chain's base is held fixed, as a bolted arm's)"
+        )
+    return lines
+
+
 def describe_robot(
     robot,
     model: str,
@@ -170,6 +203,7 @@ def describe_robot(
     chosen = "as given" if joints is not None else "those from the root to the end effector"
     lines.append(f"joints ({robot.n_joints}, {chosen}):")
     lines += _table(rows)
+    lines += _other_joints_lines(robot)
 
     body = int(m.site_bodyid[robot.site_id])
     body_name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body) or f"#{body}"

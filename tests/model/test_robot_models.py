@@ -536,3 +536,22 @@ def test_cli_robot_report_and_config_section(include_model, capsys):
     assert main(["robot", str(path.with_name("missing.xml"))]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "missing.xml: MJCF file not found" in err
+    assert "other joints" not in out  # every joint of that model is controlled
+
+
+def test_cli_robot_names_the_joints_it_holds(tmp_path, capsys):
+    """A model with more joints than the chain (a floating base, the other arm): the report
+    names those held at qpos0, and says so of a free joint."""
+    text = (ASSETS / "tree_arm.xml").read_text()
+    assert main(["robot", str(ASSETS / "tree_arm.xml")]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("other joints"))
+    assert "r_slide (slide), r_sh (hinge), r_elbow (hinge), r_wrist (hinge)" in line
+    assert "free joint" not in out
+    body = text.index("<body", text.index("<worldbody>"))
+    floating = text[: text.index(">", body) + 1] + '<freejoint name="float"/>'
+    floating += text[text.index(">", body) + 1 :]
+    (tmp_path / "floating.xml").write_text(floating)
+    assert main(["robot", str(tmp_path / "floating.xml")]) == 0
+    out = capsys.readouterr().out
+    assert "float (free)" in out and "the chain's base is held fixed" in out
