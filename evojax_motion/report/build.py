@@ -355,4 +355,6 @@ def _condition_figures(
         if name == "catch.gif":
             wrote(name, rnd.save_gif(ims[0], path, fps=catch[2] * GIF_SPEED))
             continue
-        wrote(name, snapshot_figure(np.stack(ims), labels, times, path, titles[name], used))
+        asked = renderer == "stick"
+        figure = snapshot_figure(np.stack(ims), labels, times, path, titles[name], used, asked)
+        wrote(name, figure)

@@ -293,7 +293,9 @@ def plot_tradeoff(metrics: list[dict], path: Path, baseline: dict | None = None)
     return _save(tradeoff_figure(metrics, baseline), path)
 
 
-def snapshot_figure(frames, row_labels, times, path: Path, title: str, renderer: str) -> Path:
+def snapshot_figure(
+    frames, row_labels, times, path: Path, title: str, renderer: str, asked: bool = False
+) -> Path:
     """Grid of rendered frames ``(rows, cols, H, W, 3)`` with row labels and times [s]."""
     import matplotlib.pyplot as plt
 
@@ -311,6 +313,8 @@ def snapshot_figure(frames, row_labels, times, path: Path, title: str, renderer:
                 ax.set_title(f"t = {times[c]:.2f} s", fontsize=8)
         axes[r, 0].set_ylabel(row_labels[r], fontsize=8)
     fallback = "" if renderer.startswith("mujoco") else " [stick-figure fallback: no OpenGL]"
+    if asked and not renderer.startswith("mujoco"):
+        fallback = " [stick figures]"
     fig.suptitle(f"{title}{fallback}", fontsize=10)
     fig.tight_layout()
     return _save(fig, path)

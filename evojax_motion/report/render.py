@@ -11,7 +11,8 @@ the user's ``MUJOCO_GL`` first, then `GL_BACKENDS`; a crash of a GL driver then 
 caller down.
 
 Without a backend, `render_motion` draws the same frames from forward kinematics, no GL
-(`report.sticks.render_sticks`, labelled `report.sticks.STICK_LABEL`). Either way the result is
+(`report.sticks.render_sticks`, labelled `report.sticks.STICK_LABEL`, or `ASKED_LABEL` where
+``renderer`` asked for them). Either way the result is
 ``(F, H, W, 3) uint8`` images. Cameras (`report.kinematics.Camera`, `VIEWS`, `fit_camera`) are
 MuJoCo free cameras.
 
@@ -42,7 +43,7 @@ import numpy as np
 
 from evojax_motion.model.robot import Robot, robot_from_mjcf_text
 from evojax_motion.report.kinematics import BALL_RGBA, Camera, full_qpos
-from evojax_motion.report.sticks import render_sticks
+from evojax_motion.report.sticks import ASKED_LABEL, STICK_LABEL, render_sticks
 from evojax_motion.settings.online import BALL_RADIUS
 
 GL_BACKENDS = ("egl", "osmesa")
@@ -332,7 +333,8 @@ def render_motion(
                 used = f"stick figure (MuJoCo rendering failed: {e})"
         elif renderer == "mujoco":
             raise RenderUnavailable(status.message)
-    return Frames(render_sticks(robot, q, cameras, balls, width, height, floor), used)
+    label = ASKED_LABEL if renderer == "stick" else STICK_LABEL
+    return Frames(render_sticks(robot, q, cameras, balls, width, height, floor, label), used)
 
 
 def save_gif(images: np.ndarray, path: str | os.PathLike, fps: float = 20.0) -> Path:

@@ -18,6 +18,7 @@ from evojax_motion.report.kinematics import BALL_RGBA, Camera, project, segments
 from evojax_motion.settings.online import BALL_RADIUS
 
 STICK_LABEL = "stick figure (fallback: no OpenGL)"
+ASKED_LABEL = "stick figure"  # where the stick figures were asked for (``--renderer stick``)
 
 
 def render_sticks(

@@ -319,6 +319,26 @@ def _foreground(images):
     return np.abs(images.astype(float) - corner).sum(axis=-1) > 40
 
 
+def test_stick_figures_asked_for_are_not_called_a_fallback(reach, monkeypatch):
+    """``renderer="stick"``: the frames say "stick figure" only; the fallback's label (no
+    OpenGL) is kept for frames drawn because MuJoCo could not render."""
+    from evojax_motion.report import sticks
+
+    robot, q, cam = reach
+    labels = []
+
+    def spy(*args, **kwargs):
+        labels.append(args[7] if len(args) > 7 else kwargs.get("label"))
+        return np.zeros((len(q), 4, 4, 3), np.uint8)
+
+    monkeypatch.setattr(rnd, "render_sticks", spy)
+    monkeypatch.setattr(rnd, "gl_status", lambda: rnd.GLStatus(None, "no GL here"))
+    assert rnd.render_motion(robot, q, [cam], renderer="stick").renderer == "stick figure"
+    rnd.render_motion(robot, q, [cam], renderer="auto")
+    assert labels == [sticks.ASKED_LABEL, sticks.STICK_LABEL]
+    assert "fallback" in sticks.STICK_LABEL and "fallback" not in sticks.ASKED_LABEL
+
+
 def test_stick_fallback_matches_mujoco_framing(reach):
     robot, q, cam = reach
     sticks = render_sticks(robot, q, [cam], label="")
