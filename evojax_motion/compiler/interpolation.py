@@ -407,7 +407,7 @@ def mean_onto_boundary(basis: Basis, boundary: Boundary, grid: TimeGrid) -> jnp.
     s = np.asarray(grid.s, np.float64)
     h = np.stack(profiles.quintic_hermite(s))  # (4, T)
     d1 = np.asarray(grid.d1, np.float64)[[0, -1]]
-    rows = np.concatenate([h[:, [0, -1]].T, (h @ d1.T).T])  # (4 rows, 4 offsets)
+    rows = np.concatenate([h[:, [0, -1]].T, (h @ d1.T).T])  # `_bc_rows` in float64, inverted here
     dtype = basis.mean.dtype
     solve = jnp.asarray(np.linalg.inv(rows), dtype)
     offsets, d1_ends = jnp.asarray(h, dtype), jnp.asarray(d1, dtype)

@@ -350,11 +350,11 @@ def _condition_figures(
         "fig7_snapshots.png": f"condition {ctx.condition}: generation 1 vs {last_gen} (Fig. 7)",
         "fig9_snapshots.png": f"condition {ctx.condition}: interpolation vs optimisation (Fig. 9)",
     }
+    asked = renderer == "stick"  # stick figures asked for, not a fallback
     for name, (labels, ims) in by_name.items():
         path = out / name
         if name == "catch.gif":
             wrote(name, rnd.save_gif(ims[0], path, fps=catch[2] * GIF_SPEED))
             continue
-        asked = renderer == "stick"
         figure = snapshot_figure(np.stack(ims), labels, times, path, titles[name], used, asked)
         wrote(name, figure)

@@ -72,6 +72,18 @@ def full_qpos(robot: Robot, q: np.ndarray) -> np.ndarray:
     return qpos
 
 
+def kinematics_frames(robot: Robot, q):
+    """``(f, data)`` for each frame f of ``q (F, J)`` [rad]: one ``MjData`` after
+    ``mj_kinematics`` at that frame's full ``qpos`` (`full_qpos`), reused from frame to frame
+    (read what a frame needs before the next)."""
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    for f, qpos in enumerate(full_qpos(robot, np.atleast_2d(np.asarray(q, np.float64)))):
+        d.qpos[:] = qpos
+        mujoco.mj_kinematics(m, d)
+        yield f, d
+
+
 # Geom groups MuJoCo's viewer shows by default (``mjVisual``'s geomgroup 0-2); published models
 # keep their collision geoms in group 3, duplicates of the visual ones.
 SHOWN_GROUPS = 3
@@ -88,7 +100,6 @@ def segments(robot: Robot, q) -> Segments:
     """
     q = np.atleast_2d(np.asarray(q, np.float64))
     m = robot.mj_model
-    d = mujoco.MjData(m)
     g = mujoco.mjtGeom
     kept: list[int] = []
     axis: list[int] = []
@@ -125,9 +136,7 @@ def segments(robot: Robot, q) -> Segments:
     a = np.zeros((q.shape[0], idx.size, 3))
     b = np.zeros_like(a)
     local = np.asarray(centre).reshape(-1, 3)
-    for f, qpos in enumerate(full_qpos(robot, q)):
-        d.qpos[:] = qpos
-        mujoco.mj_kinematics(m, d)
+    for f, d in kinematics_frames(robot, q):
         mat = d.geom_xmat[idx].reshape(-1, 3, 3)
         pos = d.geom_xpos[idx] + np.einsum("gij,gj->gi", mat, local)
         direction = mat[np.arange(idx.size), :, np.asarray(axis, int)] * np.asarray(half)[:, None]
@@ -146,15 +155,12 @@ def body_chain(robot: Robot, q) -> Segments:
     origin to its own, and one from the end effector's body to its site; `CHAIN_RADIUS`."""
     q = np.atleast_2d(np.asarray(q, np.float64))
     m = robot.mj_model
-    d = mujoco.MjData(m)
     child = np.arange(1, m.nbody)
     parent = m.body_parentid[child]
     site_body = int(m.site_bodyid[robot.site_id])
     a = np.zeros((q.shape[0], child.size + 1, 3))
     b = np.zeros_like(a)
-    for f, qpos in enumerate(full_qpos(robot, q)):
-        d.qpos[:] = qpos
-        mujoco.mj_kinematics(m, d)
+    for f, d in kinematics_frames(robot, q):
         a[f, :-1], b[f, :-1] = d.xpos[parent], d.xpos[child]
         a[f, -1], b[f, -1] = d.xpos[site_body], d.site_xpos[robot.site_id]
     n = child.size + 1
@@ -164,12 +170,8 @@ def body_chain(robot: Robot, q) -> Segments:
 def site_positions(robot: Robot, q) -> np.ndarray:
     """World position of the robot's end-effector site for ``q (F, J)``: ``(F, 3)`` [m]."""
     q = np.atleast_2d(np.asarray(q, np.float64))
-    m = robot.mj_model
-    d = mujoco.MjData(m)
     out = np.zeros((q.shape[0], 3))
-    for f, qpos in enumerate(full_qpos(robot, q)):
-        d.qpos[:] = qpos
-        mujoco.mj_kinematics(m, d)
+    for f, d in kinematics_frames(robot, q):
         out[f] = d.site_xpos[robot.site_id]
     return out
 

@@ -7,7 +7,6 @@ same demonstration database.
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -41,11 +40,17 @@ def make_robot_dynamics(cfg: Config) -> tuple[Robot, Dynamics]:
 
 
 def check_database_matches_robot(meta: DatabaseMeta, robot: Robot, where: str) -> None:
-    """Refuse a database recorded for another robot (joint names or count differ)."""
+    """Refuse a database recorded for another robot: joint names or count differ, or its hand
+    positions (conditions) are of another end effector."""
     if tuple(meta.joint_names) != tuple(robot.joint_names):
         raise UserError(
             f"{where}: database joints {list(meta.joint_names)} do not match robot "
             f"{robot.name!r} joints {list(robot.joint_names)}"
+        )
+    if meta.site_name != robot.site_name:
+        raise UserError(
+            f"{where}: its hand positions are of end effector {meta.site_name!r}; the config's "
+            f"robot has {robot.site_name!r} (robot.end_effector): import the recordings for it"
         )
 
 
@@ -186,13 +191,8 @@ def read_demonstrations_file(cfg: Config, robot: Robot) -> tuple[Database, Datab
         raise ValueError("read_demonstrations_file: the config has no demos_file")
     db, meta = load_database(path)
     check_database_matches_robot(meta, robot, path)
-    if meta.site_name != robot.site_name:
-        raise UserError(
-            f"{path}: its hand positions are of end effector {meta.site_name!r}; the config's "
-            f"robot has {robot.site_name!r} (robot.end_effector): import the recordings for it"
-        )
     keep = human_mask(db)
-    ours = dataclasses.replace(meta, robot_name=robot.name, mjcf=robot.mjcf)
+    ours = DatabaseMeta.of_robot(robot, meta.synthetic, meta.description)
     return Database(*(np.asarray(a)[keep] for a in db)), ours
 
 
